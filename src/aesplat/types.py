@@ -1,0 +1,200 @@
+"""Typed containers passed between modules (SPEC sections 2 and 8). Nothing passes loose tuples.
+
+Each container checks shapes and dtypes when built and names the offending field in its error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import torch
+from torch import Tensor
+
+
+def _check(name: str, t: Any, ndim: int, tail: tuple[int | None, ...] = ()) -> None:
+    if not isinstance(t, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if not t.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got dtype {t.dtype}")
+    if t.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {tuple(t.shape)}")
+    for i, size in enumerate(tail):
+        if size is not None and t.shape[ndim - len(tail) + i] != size:
+            want = "[" + ", ".join("*" if s is None else str(s) for s in tail) + "]"
+            raise ValueError(f"{name} must end in {want}, got shape {tuple(t.shape)}")
+
+
+def _same_leading(names: list[str], tensors: list[Tensor], n: int) -> None:
+    lead = [tuple(t.shape[:n]) for t in tensors]
+    if len(set(lead)) != 1:
+        shown = ", ".join(f"{a}={b}" for a, b in zip(names, lead))
+        raise ValueError(f"leading dimensions disagree: {shown}")
+
+
+class _TensorContainer:
+    """Shared helpers: map a function over every tensor field."""
+
+    def apply(self, fn):
+        return replace(self, **{f.name: fn(getattr(self, f.name)) for f in fields(self)
+                                if isinstance(getattr(self, f.name), Tensor)})  # fmt: skip
+
+    def to(self, device=None, dtype: torch.dtype | None = None):
+        """Move to ``device``; cast floating-point fields (only) to ``dtype``."""
+        return self.apply(lambda t: t.to(device=device, dtype=dtype if t.is_floating_point() else None))
+
+    def detach(self):
+        return self.apply(lambda t: t.detach())
+
+
+@dataclass(frozen=True)
+class Gaussians(_TensorContainer):
+    """A batch of 3D Gaussians.
+
+    means      [B, N, 3]  centres (world / view-0 frame)
+    quats      [B, N, 4]  rotations (w, x, y, z), normalised before use
+    scales     [B, N, 3]  standard deviations along the rotated axes, > 0
+    opacities  [B, N]     in (0, 1)
+    sh         [B, N, K, 3] SH coefficients, K = (L + 1)^2 for degree L in 0..4
+    """
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    sh: Tensor
+
+    def __post_init__(self) -> None:
+        _check("Gaussians.means", self.means, 3, (3,))
+        _check("Gaussians.quats", self.quats, 3, (4,))
+        _check("Gaussians.scales", self.scales, 3, (3,))
+        _check("Gaussians.opacities", self.opacities, 2)
+        _check("Gaussians.sh", self.sh, 4, (None, 3))
+        k = self.sh.shape[2]
+        if k not in (1, 4, 9, 16, 25):
+            raise ValueError(f"Gaussians.sh has K={k} coefficients; K must be (L+1)^2 for L in 0..4")
+        names = ["means", "quats", "scales", "opacities", "sh"]
+        _same_leading(names, [self.means, self.quats, self.scales, self.opacities, self.sh], 2)
+
+    @property
+    def batch_size(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.means.shape[1]
+
+    @property
+    def sh_degree(self) -> int:
+        return round(self.sh.shape[2] ** 0.5) - 1
+
+
+@dataclass(frozen=True)
+class RenderOutput(_TensorContainer):
+    """What the rasterizer returns for V cameras.
+
+    color [B, V, 3, H, W]  composited colour over the background
+    depth [B, V, 1, H, W]  expected z-depth of what is seen (0 where nothing is seen)
+    alpha [B, V, 1, H, W]  1 - final transmittance
+    """
+
+    color: Tensor
+    depth: Tensor
+    alpha: Tensor
+
+    def __post_init__(self) -> None:
+        _check("RenderOutput.color", self.color, 5, (3, None, None))
+        _check("RenderOutput.depth", self.depth, 5, (1, None, None))
+        _check("RenderOutput.alpha", self.alpha, 5, (1, None, None))
+        _same_leading(["color", "depth", "alpha"], [self.color, self.depth, self.alpha], 2)
+
+
+@dataclass(frozen=True)
+class BatchedViews(_TensorContainer):
+    """A batch of V views of B scenes.
+
+    images      [B, V, 3, H, W]  float in [0, 1], or uint8 straight from the loader (see ``float_images``)
+    extrinsics  [B, V, 4, 4]     camera-to-world (OpenCV axes)
+    intrinsics  [B, V, 3, 3]     normalised (fx, cx / W; fy, cy / H)
+    near, far   [B, V]           depth range for the scene
+    index       [B, V]           frame index in the source video (int64)
+    """
+
+    images: Tensor
+    extrinsics: Tensor
+    intrinsics: Tensor
+    near: Tensor
+    far: Tensor
+    index: Tensor
+
+    def __post_init__(self) -> None:
+        if self.images.dtype == torch.uint8:  # decoded on the loader, converted on the device
+            _check("BatchedViews.images", self.images.float(), 5, (3, None, None))
+        else:
+            _check("BatchedViews.images", self.images, 5, (3, None, None))
+        _check("BatchedViews.extrinsics", self.extrinsics, 4, (4, 4))
+        _check("BatchedViews.intrinsics", self.intrinsics, 4, (3, 3))
+        _check("BatchedViews.near", self.near, 2)
+        _check("BatchedViews.far", self.far, 2)
+        if not isinstance(self.index, Tensor) or self.index.is_floating_point() or self.index.ndim != 2:
+            raise TypeError("BatchedViews.index must be an integer tensor of shape [B, V]")
+        names = ["images", "extrinsics", "intrinsics", "near", "far", "index"]
+        ts = [self.images, self.extrinsics, self.intrinsics, self.near, self.far, self.index]
+        _same_leading(names, ts, 2)
+
+    def float_images(self) -> BatchedViews:
+        """The same views with images as float32 in [0, 1] (uint8 images are divided by 255)."""
+        if self.images.dtype != torch.uint8:
+            return self
+        return replace(self, images=self.images.float() / 255.0)
+
+    @property
+    def num_views(self) -> int:
+        return self.images.shape[1]
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        return tuple(self.images.shape[-2:])
+
+
+@dataclass(frozen=True)
+class BatchedExample:
+    """One training / evaluation batch: context views, target views and per-scene metadata.
+
+    scene    list of B scene keys
+    overlap  [B] context overlap (NaN where unknown), gap [B] context frame gap
+    """
+
+    context: BatchedViews
+    target: BatchedViews
+    scene: list[str] = field(default_factory=list)
+    overlap: Tensor | None = None
+    gap: Tensor | None = None
+    dataset: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        b = self.context.images.shape[0]
+        if self.target.images.shape[0] != b:
+            raise ValueError(f"context and target batch sizes differ: {b} vs {self.target.images.shape[0]}")
+        if self.context.image_shape != self.target.image_shape:
+            raise ValueError(
+                f"context and target image sizes differ: {self.context.image_shape} vs "
+                f"{self.target.image_shape}"
+            )
+
+    def float_images(self) -> BatchedExample:
+        """Convert uint8 images of both view sets to float32 in [0, 1] (do it after moving to the device)."""
+        return replace(self, context=self.context.float_images(), target=self.target.float_images())
+
+    @property
+    def batch_size(self) -> int:
+        return self.context.images.shape[0]
+
+    def to(self, device=None, dtype: torch.dtype | None = None) -> BatchedExample:
+        def move(t: Tensor | None) -> Tensor | None:
+            if t is None:
+                return None
+            return t.to(device=device, dtype=dtype if t.is_floating_point() else None)
+
+        return replace(self, context=self.context.to(device, dtype), target=self.target.to(device, dtype),
+                       overlap=move(self.overlap), gap=move(self.gap))  # fmt: skip
