@@ -74,6 +74,4 @@ def test_uint8_images_convert_to_unit_floats():
     kw["images"] = torch.full((2, 2, 3, 8, 8), 255, dtype=torch.uint8)
     v = BatchedViews(**kw)
     ex = BatchedExample(context=v, target=v).float_images()
-    assert ex.context.images.dtype == torch.float32 and torch.equal(
-        ex.target.images, torch.ones(2, 2, 3, 8, 8)
-    )
+    assert ex.context.images.dtype == torch.float32 and torch.equal(ex.target.images, torch.ones(2, 2, 3, 8, 8))

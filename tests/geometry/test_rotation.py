@@ -14,9 +14,7 @@ def assert_rotation(r: torch.Tensor, atol: float = 1e-5) -> None:
     assert torch.isfinite(r).all()
     eye = torch.eye(3, dtype=r.dtype).expand_as(r)
     torch.testing.assert_close(r @ r.transpose(-1, -2), eye, atol=atol, rtol=0)
-    torch.testing.assert_close(
-        torch.linalg.det(r), torch.ones(r.shape[:-2], dtype=r.dtype), atol=atol, rtol=0
-    )
+    torch.testing.assert_close(torch.linalg.det(r), torch.ones(r.shape[:-2], dtype=r.dtype), atol=atol, rtol=0)
 
 
 def test_rot6d_random_is_rotation_and_round_trips():
