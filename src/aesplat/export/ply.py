@@ -1,0 +1,85 @@
+"""Gaussians to a PLY file in the reference 3DGS layout (Kerbl et al. 2023), readable by common 3DGS viewers.
+
+One vertex per Gaussian, binary little-endian float32 properties in this order:
+
+    x y z                      centre (the view-0 camera frame, OpenCV axes)
+    nx ny nz                   zeros (the reference writes them; viewers expect them)
+    f_dc_0 f_dc_1 f_dc_2       DC SH coefficient per colour channel
+    f_rest_0 .. f_rest_{3(K-1)-1}
+                               higher-order SH, channel-major: red's K-1 coefficients, then green's, then
+                               blue's (the reference transposes [N, K-1, 3] to [N, 3, K-1], then flattens)
+    opacity                    logit of the opacity (the reference applies a sigmoid when loading)
+    scale_0 scale_1 scale_2    log of the standard deviations (the reference applies exp)
+    rot_0 .. rot_3             quaternion (w, x, y, z), normalised here
+
+The SH basis and the +0.5 colour offset of this project are the reference's, so coefficients are copied as is.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..geometry import num_sh_coeffs
+from ..types import Gaussians
+
+# The reference 3DGS code and most viewers stop at SH degree 3 (45 f_rest properties).
+VIEWER_MAX_SH_DEGREE = 3
+_LOGIT_EPS = 1e-6  # keeps logit(opacity) and log(scale) finite for opacity 0/1 and zero scales
+
+
+def ply_property_names(sh_degree: int) -> list[str]:
+    """Vertex property names, in file order, for SH degree ``sh_degree``."""
+    num_rest = 3 * (num_sh_coeffs(sh_degree) - 1)
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(num_rest)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
+
+
+def gaussians_to_ply_array(gaussians: Gaussians, index: int = 0, sh_degree: int | None = None) -> np.ndarray:
+    """The vertex table [N, P] (float32) of scene ``index`` of a batch, columns as :func:`ply_property_names`.
+
+    sh_degree: write only the bands up to this degree (default: all the Gaussians carry).
+    """
+    degree = gaussians.sh_degree if sh_degree is None else sh_degree
+    if not 0 <= degree <= gaussians.sh_degree:
+        raise ValueError(f"cannot write SH degree {degree}: the Gaussians carry degree {gaussians.sh_degree}")
+    if not 0 <= index < gaussians.batch_size:
+        raise IndexError(f"scene index {index} out of range for a batch of {gaussians.batch_size}")
+    g = gaussians.detach().to("cpu", torch.float32)
+    means = g.means[index]  # [N, 3]
+    sh = g.sh[index, :, : num_sh_coeffs(degree)]  # [N, K, 3]
+    n = means.shape[0]
+    f_dc = sh[:, 0]  # [N, 3]
+    f_rest = sh[:, 1:].transpose(1, 2).reshape(n, -1)  # [N, 3 * (K - 1)], channel-major
+    opacity = g.opacities[index].clamp(_LOGIT_EPS, 1.0 - _LOGIT_EPS)
+    logit = torch.log(opacity) - torch.log1p(-opacity)  # [N]
+    log_scales = torch.log(g.scales[index].clamp_min(_LOGIT_EPS))  # [N, 3]
+    quats = g.quats[index]
+    norm = quats.norm(dim=-1, keepdim=True)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0]).expand_as(quats)
+    quats = torch.where(norm > 1e-12, quats / norm.clamp_min(1e-12), identity)  # [N, 4]
+    table = torch.cat([means, torch.zeros_like(means), f_dc, f_rest, logit[:, None], log_scales, quats], dim=1)
+    return table.numpy().astype(np.float32, copy=False)
+
+
+def write_ply(path: str | Path, gaussians: Gaussians, index: int = 0, sh_degree: int | None = None) -> Path:
+    """Write scene ``index`` of ``gaussians`` to ``path`` as a binary 3DGS PLY; returns the path.
+
+    sh_degree: bands to keep (default: all). Use ``VIEWER_MAX_SH_DEGREE`` (3) for viewers that stop at 3.
+    """
+    degree = gaussians.sh_degree if sh_degree is None else sh_degree
+    table = gaussians_to_ply_array(gaussians, index, degree)
+    names = ply_property_names(degree)
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {table.shape[0]}"]
+    header += [f"property float {name}" for name in names] + ["end_header"]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(table.astype("<f4", copy=False).tobytes())
+    return path

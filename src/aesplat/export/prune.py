@@ -1,0 +1,43 @@
+"""Fewer Gaussians for less time: keep the most opaque ones, or drop the nearly transparent ones."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..types import Gaussians
+
+
+def keep_most_opaque(gaussians: Gaussians, fraction: float) -> Gaussians:
+    """Keep the most opaque ``fraction`` (in (0, 1]) of each scene's Gaussians (same count per scene).
+
+    Returns Gaussians [B, k] with k = round(fraction * N), at least 1.
+    """
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"fraction must be in (0, 1], got {fraction}")
+    n = gaussians.num_gaussians
+    k = max(1, round(fraction * n))
+    if k == n:
+        return gaussians
+    idx = gaussians.opacities.topk(k, dim=1, sorted=False).indices  # [B, k]
+
+    def take(t: Tensor) -> Tensor:  # [B, N, ...] -> [B, k, ...]
+        return torch.gather(t, 1, idx.view(*idx.shape, *([1] * (t.ndim - 2))).expand(*idx.shape, *t.shape[2:]))
+
+    return gaussians.apply(take)
+
+
+def drop_transparent(gaussians: Gaussians, min_opacity: float) -> Gaussians:
+    """Drop Gaussians with opacity below ``min_opacity`` (one scene, B = 1: counts differ between scenes).
+
+    At least one Gaussian (the most opaque) is always kept, so the result is a valid container.
+    """
+    if gaussians.batch_size != 1:
+        raise ValueError(
+            f"drop_transparent works on one scene at a time, got a batch of {gaussians.batch_size}"
+        )
+    keep = gaussians.opacities[0] >= min_opacity  # [N]
+    if not keep.any():
+        keep = torch.zeros_like(keep)
+        keep[gaussians.opacities[0].argmax()] = True
+    return gaussians.apply(lambda t: t[:, keep])
