@@ -1,0 +1,169 @@
+"""Decoupled appearance (paper section 4): I2DC for the zeroth-order SH coefficient, and a view-dependent
+head fed with GVSRE and the warped colour map (WCM) for the higher-order coefficients.
+
+``i2dc``, ``gvsre_descriptor`` and ``warped_color_map`` are pure functions; the two small networks (the
+GVSRE MLP and the view-dependent head) are the model's ``appearance`` parameter group.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from aesplat.geometry import num_sh_coeffs, project_points, rgb_to_sh_dc, safe_norm
+
+APPEARANCE_MODES = ("full", "no_gvsre", "no_wcm", "i2dc_only", "baseline", "baseline_i2dc")
+
+
+def i2dc(images: Tensor) -> Tensor:
+    """Image-to-Direct-Component: pixels [B, V, 3, H, W] -> DC coefficients [B, V·H·W, 1, 3].
+
+    c0 = (C - 0.5) / C0, Gaussians in (view, row, column) order. No parameters.
+    """
+    b = images.shape[0]
+    return rgb_to_sh_dc(images.permute(0, 1, 3, 4, 2).reshape(b, -1, 1, 3))
+
+
+def gvsre_descriptor(means: Tensor, camera_centres: Tensor, min_distance: float = 1e-4) -> Tensor:
+    """Gaussian-to-views spatial relation: for each Gaussian and each context camera centre o, the unit
+    direction (o - mu) / |o - mu| and log |o - mu| (distance clamped to ``min_distance``).
+
+    means [B, N, 3], camera_centres [B, C, 3] -> [B, N, 4·C], camera by camera [dx, dy, dz, log d].
+    A Gaussian at a camera centre gets direction 0 and log(min_distance), finite with finite gradients.
+    """
+    diff = camera_centres[:, None] - means[:, :, None]  # [B, N, C, 3]
+    dist = safe_norm(diff, keepdim=True).clamp_min(min_distance)  # [B, N, C, 1]
+    desc = torch.cat([diff / dist, dist.log()], dim=-1)  # [B, N, C, 4]
+    return desc.flatten(2)
+
+
+def warped_color_map(
+    means: Tensor, images: Tensor, intrinsics: Tensor, extrinsics: Tensor
+) -> tuple[Tensor, Tensor]:
+    """WCM: project each Gaussian centre of context view p into every other context view q and sample q's
+    image there bilinearly.
+
+    means [B, V, P, 3] (world frame, P = H·W per view), images [B, V, 3, H, W], intrinsics [B, V, 3, 3]
+    (normalised), extrinsics [B, V, 4, 4] camera-to-world.
+    Returns colours [B, V, P, V-1, 3] and validity mask [B, V, P, V-1] (1 where the point is in front of q,
+    z > 0, and inside q's image), with the other views q in increasing order. Invalid samples are colour 0.
+    """
+    b, v, p, _ = means.shape
+    if v < 2:
+        raise ValueError(f"the warped colour map needs at least 2 context views, got {v}")
+    h, w = images.shape[-2:]
+    # uv [B, Vq, Vp·P, 2], valid [B, Vq, Vp·P]
+    uv, _, valid = project_points(means.reshape(b, v * p, 3), intrinsics, extrinsics, h, w)
+    scale = uv.new_tensor([2.0 / w, 2.0 / h])
+    grid = torch.where(valid[..., None], uv * scale - 1.0, torch.zeros_like(uv))  # align_corners=False coords
+    samples = F.grid_sample(
+        images.reshape(b * v, 3, h, w), grid.reshape(b * v, 1, v * p, 2), mode="bilinear",
+        padding_mode="border", align_corners=False,
+    )  # [B·Vq, 3, 1, Vp·P]  # fmt: skip
+    samples = samples.reshape(b, v, 3, v, p).permute(0, 3, 4, 1, 2)  # [B, Vp, P, Vq, 3]
+    mask = valid.reshape(b, v, v, p).permute(0, 2, 3, 1).to(images.dtype)  # [B, Vp, P, Vq]
+    others = torch.tensor([[q for q in range(v) if q != src] for src in range(v)], device=means.device)
+    idx = others[None, :, None, :].expand(b, v, p, v - 1)  # [B, Vp, P, V-1]
+    mask = torch.gather(mask, 3, idx)
+    colors = torch.gather(samples, 3, idx[..., None].expand(-1, -1, -1, -1, 3)) * mask[..., None]
+    return colors, mask
+
+
+class GVSRE(nn.Module):
+    """The shallow MLP that turns the GVSRE descriptor [..., 4·C] into an embedding [..., dim]."""
+
+    def __init__(self, num_context_views: int, dim: int) -> None:
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(4 * num_context_views, dim), nn.GELU(), nn.Linear(dim, dim))
+
+    def forward(self, descriptor: Tensor) -> Tensor:
+        return self.mlp(descriptor)
+
+
+class ViewDependentHead(nn.Module):
+    """LayerNorm over [Gaussian-head features, GVSRE, WCM], then a 4-layer MLP (GELU after the first three,
+    linear output) -> the (K - 1)·3 higher-order SH coefficients of degree ``sh_degree``."""
+
+    def __init__(self, in_dim: int, hidden: int, sh_degree: int) -> None:
+        super().__init__()
+        if sh_degree < 1:
+            raise ValueError("the view-dependent head predicts higher-order SH; it needs sh_degree >= 1")
+        self.num_coeffs = num_sh_coeffs(sh_degree) - 1
+        self.net = nn.Sequential(
+            nn.LayerNorm(in_dim),
+            nn.Linear(in_dim, hidden), nn.GELU(),
+            nn.Linear(hidden, hidden), nn.GELU(),
+            nn.Linear(hidden, hidden), nn.GELU(),
+            nn.Linear(hidden, self.num_coeffs * 3),
+        )  # fmt: skip
+        nn.init.normal_(self.net[-1].weight, std=1e-3)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x [..., in_dim] -> higher-order SH [..., K - 1, 3]."""
+        return self.net(x).unflatten(-1, (self.num_coeffs, 3))
+
+
+class DecoupledAppearance(nn.Module):
+    """Assembles every Gaussian's SH coefficients according to the ablation ``mode``:
+
+    ============== ============= =================================================
+    mode           DC (l = 0)    higher orders (l >= 1)
+    ============== ============= =================================================
+    full           I2DC          view-dependent head on [features, GVSRE, WCM]
+    no_gvsre       I2DC          view-dependent head on [features, WCM]
+    no_wcm         I2DC          view-dependent head on [features, GVSRE]
+    i2dc_only      I2DC          none (SH degree 0)
+    baseline       Gaussian head Gaussian head
+    baseline_i2dc  I2DC          Gaussian head
+    ============== ============= =================================================
+    """
+
+    def __init__(self, mode: str, sh_degree: int, feature_dim: int, num_context_views: int = 2,
+                 gvsre_dim: int = 32, hidden: int = 128) -> None:  # fmt: skip
+        super().__init__()
+        if mode not in APPEARANCE_MODES:
+            raise ValueError(f"unknown appearance mode {mode!r}; choose one of {', '.join(APPEARANCE_MODES)}")
+        self.mode = mode
+        self.sh_degree = 0 if mode == "i2dc_only" else sh_degree
+        self.num_context_views = num_context_views
+        self.use_i2dc = mode != "baseline"
+        self.use_gvsre = mode in ("full", "no_wcm")
+        self.use_wcm = mode in ("full", "no_gvsre")
+        k = num_sh_coeffs(self.sh_degree)
+        self.gaussian_head_sh = {"baseline": k, "baseline_i2dc": k - 1}.get(mode, 0)
+        self.gvsre = GVSRE(num_context_views, gvsre_dim) if self.use_gvsre else None
+        wcm_dim = 4 * (num_context_views - 1)  # colour + mask per other context view
+        in_dim = feature_dim + (gvsre_dim if self.use_gvsre else 0) + (wcm_dim if self.use_wcm else 0)
+        uses_head = mode in ("full", "no_gvsre", "no_wcm")
+        self.view_dependent_head = ViewDependentHead(in_dim, hidden, self.sh_degree) if uses_head else None
+
+    def forward(
+        self,
+        images: Tensor,  # [B, V, 3, H, W] context images
+        means: Tensor,  # [B, V, P, 3] Gaussian centres, view-0 frame
+        features: Tensor,  # [B, V, P, F] Gaussian-head features
+        head_sh: Tensor | None,  # [B, V, P, S, 3] SH predicted by the Gaussian head (baseline modes)
+        intrinsics: Tensor,  # [B, V, 3, 3] context cameras
+        extrinsics: Tensor,  # [B, V, 4, 4]
+    ) -> Tensor:
+        """-> SH coefficients [B, V·P, K, 3]."""
+        b, v, p, _ = means.shape
+        parts: list[Tensor] = [i2dc(images)] if self.use_i2dc else []
+        if head_sh is not None:
+            parts.append(head_sh.reshape(b, v * p, -1, 3))
+        if self.view_dependent_head is not None:
+            if v != self.num_context_views:
+                raise ValueError(
+                    f"the view-dependent head was built for {self.num_context_views} context views, got {v}; "
+                    "set num_context_views when building the model"
+                )
+            inputs = [features.reshape(b, v * p, -1)]
+            if self.gvsre is not None:
+                inputs.append(self.gvsre(gvsre_descriptor(means.reshape(b, v * p, 3), extrinsics[:, :, :3, 3])))
+            if self.use_wcm:
+                colors, mask = warped_color_map(means, images, intrinsics, extrinsics)
+                inputs += [colors.reshape(b, v * p, -1), mask.reshape(b, v * p, -1)]
+            parts.append(self.view_dependent_head(torch.cat(inputs, dim=-1)))
+        return torch.cat(parts, dim=2)

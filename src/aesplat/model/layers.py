@@ -1,0 +1,134 @@
+"""Transformer building blocks shared by the patch encoder and the geometry transformer.
+
+Parameter names follow timm / DINOv2 (``attn.qkv``, ``attn.proj``, ``ls1.gamma``, ``mlp.fc1`` ...) so that
+pretrained checkpoints load by name.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+
+class RoPE2D(nn.Module):
+    """2D rotary position embedding: half of each head's channels rotate with the row, half with the column.
+
+    Positions are integer (row, col) pairs; the geometry transformer gives special tokens (0, 0) and patch
+    tokens (i + 1, j + 1), as VGGT does.
+    """
+
+    def __init__(self, head_dim: int, base: float = 100.0) -> None:
+        super().__init__()
+        if head_dim % 4 != 0:
+            raise ValueError(f"2D RoPE needs a head dimension divisible by 4, got {head_dim}")
+        quarter = head_dim // 4
+        inv_freq = 1.0 / (base ** (torch.arange(quarter, dtype=torch.float32) / quarter))
+        self.register_buffer("inv_freq", inv_freq, persistent=False)
+
+    def _rotate(self, x: Tensor, pos: Tensor) -> Tensor:
+        # x [..., T, d/2], pos [T] -> x rotated by angle pos * inv_freq (rotate-half layout)
+        angles = pos.to(torch.float32)[:, None] * self.inv_freq[None]  # [T, head_dim / 4]
+        cos = torch.cat([angles.cos(), angles.cos()], dim=-1).to(x.dtype)
+        sin = torch.cat([angles.sin(), angles.sin()], dim=-1).to(x.dtype)
+        x1, x2 = x.chunk(2, dim=-1)
+        return x * cos + torch.cat([-x2, x1], dim=-1) * sin
+
+    def forward(self, x: Tensor, pos: Tensor) -> Tensor:
+        """x [B, heads, T, head_dim], pos [T, 2] integer (row, col) -> same shape as x."""
+        xy, xx = x.chunk(2, dim=-1)
+        return torch.cat([self._rotate(xy, pos[:, 0]), self._rotate(xx, pos[:, 1])], dim=-1)
+
+
+class Attention(nn.Module):
+    """Multi-head self-attention on ``F.scaled_dot_product_attention``, optionally masked for context/target.
+
+    With ``num_context`` set, the first ``num_context`` tokens are context tokens: they attend to context
+    tokens only, and the remaining (target) tokens attend to everything. This is done as two SDPA calls
+    rather than a mask, so the context outputs are computed from context tokens alone and are bit-identical
+    whatever the target tokens hold.
+    """
+
+    def __init__(self, dim: int, num_heads: int, qk_norm: bool = False, rope: RoPE2D | None = None) -> None:
+        super().__init__()
+        if dim % num_heads != 0:
+            raise ValueError(f"width {dim} is not divisible by {num_heads} heads")
+        self.num_heads = num_heads
+        self.head_dim = dim // num_heads
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.q_norm = nn.LayerNorm(self.head_dim) if qk_norm else nn.Identity()
+        self.k_norm = nn.LayerNorm(self.head_dim) if qk_norm else nn.Identity()
+        self.proj = nn.Linear(dim, dim)
+        self.rope = rope
+
+    def forward(self, x: Tensor, pos: Tensor | None = None, num_context: int | None = None) -> Tensor:
+        """x [B, T, D], pos [T, 2] (used only with RoPE), num_context: see the class docstring -> [B, T, D]."""
+        b, t, d = x.shape
+        qkv = self.qkv(x).reshape(b, t, 3, self.num_heads, self.head_dim).permute(2, 0, 3, 1, 4)
+        q, k, v = qkv.unbind(0)  # [B, heads, T, head_dim]
+        q, k = self.q_norm(q), self.k_norm(k)
+        if self.rope is not None and pos is not None:
+            q, k = self.rope(q, pos), self.rope(k, pos)
+        if num_context is None or num_context >= t:
+            out = F.scaled_dot_product_attention(q, k, v)
+        else:
+            c = num_context
+            out_context = F.scaled_dot_product_attention(q[:, :, :c], k[:, :, :c], v[:, :, :c])
+            out_target = F.scaled_dot_product_attention(q[:, :, c:], k, v)
+            out = torch.cat([out_context, out_target], dim=2)
+        return self.proj(out.transpose(1, 2).reshape(b, t, d))
+
+
+class LayerScale(nn.Module):
+    def __init__(self, dim: int, init: float) -> None:
+        super().__init__()
+        self.gamma = nn.Parameter(torch.full((dim,), init))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x * self.gamma
+
+
+class Mlp(nn.Module):
+    def __init__(self, dim: int, hidden: int) -> None:
+        super().__init__()
+        self.fc1 = nn.Linear(dim, hidden)
+        self.act = nn.GELU()
+        self.fc2 = nn.Linear(hidden, dim)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.fc2(self.act(self.fc1(x)))
+
+
+class Block(nn.Module):
+    """Pre-norm transformer block with LayerScale (DINOv2 / VGGT layout)."""
+
+    def __init__(
+        self,
+        dim: int,
+        num_heads: int,
+        mlp_ratio: float = 4.0,
+        layerscale_init: float = 1e-5,
+        qk_norm: bool = False,
+        rope: RoPE2D | None = None,
+    ) -> None:
+        super().__init__()
+        self.norm1 = nn.LayerNorm(dim, eps=1e-6)
+        self.attn = Attention(dim, num_heads, qk_norm=qk_norm, rope=rope)
+        self.ls1 = LayerScale(dim, layerscale_init)
+        self.norm2 = nn.LayerNorm(dim, eps=1e-6)
+        self.mlp = Mlp(dim, int(dim * mlp_ratio))
+        self.ls2 = LayerScale(dim, layerscale_init)
+
+    def forward(self, x: Tensor, pos: Tensor | None = None, num_context: int | None = None) -> Tensor:
+        """x [B, T, D] -> [B, T, D]; see :class:`Attention` for ``pos`` and ``num_context``."""
+        x = x + self.ls1(self.attn(self.norm1(x), pos=pos, num_context=num_context))
+        return x + self.ls2(self.mlp(self.norm2(x)))
+
+
+def init_weights(module: nn.Module, std: float = 0.02) -> None:
+    """Truncated-normal Linear weights and zero biases (the ViT default)."""
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.trunc_normal_(m.weight, std=std)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)

@@ -1,0 +1,263 @@
+"""The assembled AESplat model: encoder -> geometry transformer -> camera, depth and Gaussian heads ->
+decoupled appearance -> Gaussians in view 0's frame plus a camera for every input view."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, fields, replace
+
+import torch
+from torch import Tensor, nn
+
+from aesplat.geometry import matrix_to_quat, unproject_depth
+from aesplat.types import Gaussians
+
+from .appearance import APPEARANCE_MODES, DecoupledAppearance
+from .camera_head import CameraHead
+from .dpt import DepthHead
+from .encoder import PATCH_SIZE, EncoderConfig, PatchEncoder, WeightsReport, load_encoder_weights
+from .gaussian_head import GaussianHead
+from .transformer import GeometryTransformer, TransformerConfig
+
+log = logging.getLogger(__name__)
+
+_GROUP_OF = {"appearance": "appearance", "encoder": "backbone"}  # top-level submodule -> optimizer group
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Everything that defines the network. ``build_model`` fills it from a size preset plus overrides."""
+
+    encoder: EncoderConfig = field(default_factory=EncoderConfig)
+    transformer: TransformerConfig = field(default_factory=TransformerConfig)
+    head_features: int = 128  # DPT fusion width
+    head_channels: tuple[int, int, int, int] = (96, 192, 384, 384)  # DPT reassemble widths, fine to coarse
+    gaussian_feature_dim: int = 64  # Gaussian-head features passed to the view-dependent head
+    camera_hidden: int = 256
+    appearance: str = "full"
+    sh_degree: int = 4
+    num_context_views: int = 2  # GVSRE / WCM widths depend on it
+    gvsre_dim: int = 32
+    appearance_hidden: int = 128
+    near: float = 0.1
+    far: float = 100.0
+    scale_multiplier: float = 0.001
+    scale_max: float = 0.3
+    weights: str | None = None  # local encoder checkpoint (timm or DINOv2 format)
+
+
+SIZES: dict[str, ModelConfig] = {
+    # CPU tests and the CPU demo: about 2M parameters.
+    "tiny": ModelConfig(
+        encoder=EncoderConfig(dim=96, depth=4, num_heads=3, pos_grid=16),
+        transformer=TransformerConfig(dim=96, depth=4, num_heads=3, num_register_tokens=2),
+        head_features=32,
+        head_channels=(24, 48, 96, 96),
+        gaussian_feature_dim=32,
+        camera_hidden=64,
+        gvsre_dim=16,
+        appearance_hidden=32,
+    ),
+    # DINOv2 ViT-B/14 encoder, 12 + 12 decoder blocks of width 768.
+    "base": ModelConfig(
+        encoder=EncoderConfig(dim=768, depth=12, num_heads=12),
+        transformer=TransformerConfig(dim=768, depth=12, num_heads=12),
+        head_features=128,
+        head_channels=(96, 192, 384, 768),
+        camera_hidden=384,
+    ),
+    # VGGT-like: DINOv2 ViT-L/14 encoder, 24 frame + 24 global blocks of width 1024, DPT width 256.
+    "large": ModelConfig(
+        encoder=EncoderConfig(dim=1024, depth=24, num_heads=16),
+        transformer=TransformerConfig(dim=1024, depth=24, num_heads=16),
+        head_features=256,
+        head_channels=(256, 512, 1024, 1024),
+        camera_hidden=512,
+    ),
+}
+
+# build_model keyword -> (sub-config, field); every other keyword is a ModelConfig field.
+_NESTED = {
+    "rope": ("transformer", "rope"),
+    "num_register_tokens": ("transformer", "num_register_tokens"),
+    "qk_norm": ("transformer", "qk_norm"),
+    "encoder_registers": ("encoder", "num_registers"),
+}
+
+
+@dataclass(frozen=True)
+class ModelOutput:
+    """One forward pass.
+
+    gaussians   Gaussians, one per context pixel in (view, row, column) order, in view 0's frame:
+                means [B, N, 3], quats [B, N, 4], scales [B, N, 3], opacities [B, N], sh [B, N, K, 3],
+                N = Vc·H·W, K = (L + 1)^2
+    extrinsics  [B, Vc + Vt, 4, 4] camera-to-world in view 0's frame (view 0 is the identity), context first
+    intrinsics  [B, Vc + Vt, 3, 3] normalised
+    depth       [B, Vc, H, W] predicted z-depth of the context views
+    """
+
+    gaussians: Gaussians
+    extrinsics: Tensor
+    intrinsics: Tensor
+    depth: Tensor
+
+    @property
+    def num_context_views(self) -> int:
+        return self.depth.shape[1]
+
+
+def _quat_multiply(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product of quaternions (w, x, y, z) [..., 4] x [..., 4] -> [..., 4]."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        dim=-1,
+    )
+
+
+class AESplatModel(nn.Module):
+    """Pose-free feed-forward Gaussian splatting with decoupled appearance (see the README section "Model").
+
+    forward(context_images [B, Vc, 3, H, W], target_images [B, Vt, 3, H, W] | None) -> ModelOutput, images
+    float in [0, 1], H and W multiples of 14, Vc >= 2. The encoder and the geometry transformer follow any
+    surrounding autocast; the heads, geometry and appearance always run in float32.
+    """
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = PatchEncoder(cfg.encoder)
+        self.transformer = GeometryTransformer(cfg.encoder.dim, cfg.transformer)
+        token_dim = 2 * cfg.transformer.dim
+        self.camera_head = CameraHead(token_dim, cfg.camera_hidden)
+        self.depth_head = DepthHead(token_dim, cfg.head_features, cfg.head_channels, cfg.near, cfg.far)
+        self.appearance = DecoupledAppearance(
+            cfg.appearance, cfg.sh_degree, cfg.gaussian_feature_dim, cfg.num_context_views, cfg.gvsre_dim,
+            cfg.appearance_hidden,
+        )  # fmt: skip
+        self.gaussian_head = GaussianHead(
+            token_dim, cfg.head_features, cfg.head_channels, cfg.gaussian_feature_dim,
+            self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max,
+        )  # fmt: skip
+        self.weights_report: WeightsReport | None = None
+        if cfg.weights:
+            self.weights_report = load_encoder_weights(self.encoder, cfg.weights)
+            log.info("loaded %d encoder tensors from %s", len(self.weights_report.loaded), cfg.weights)
+
+    @property
+    def sh_degree(self) -> int:
+        """SH degree of the predicted Gaussians (0 in ``i2dc_only``)."""
+        return self.appearance.sh_degree
+
+    @property
+    def pretrained_backbone(self) -> bool:
+        """Whether pretrained encoder weights were loaded (training gives them a lower learning rate)."""
+        return self.weights_report is not None and len(self.weights_report.loaded) > 0
+
+    def named_parameter_groups(self) -> dict[str, list[tuple[str, nn.Parameter]]]:
+        """Trainable parameters by optimizer group: ``appearance`` (view-dependent head + GVSRE MLP),
+        ``backbone`` (patch encoder) and ``rest``. Every trainable parameter is in exactly one group."""
+        groups: dict[str, list[tuple[str, nn.Parameter]]] = {"appearance": [], "backbone": [], "rest": []}
+        for name, param in self.named_parameters():
+            if not param.requires_grad:
+                continue
+            groups[_GROUP_OF.get(name.split(".")[0], "rest")].append((name, param))
+        return groups
+
+    def _check_inputs(self, context: Tensor, target: Tensor | None) -> None:
+        if context.ndim != 5 or context.shape[2] != 3:
+            raise ValueError(f"context_images must be [B, Vc, 3, H, W], got shape {tuple(context.shape)}")
+        if not context.is_floating_point():
+            raise TypeError(f"context_images must be float in [0, 1], got {context.dtype}; divide uint8 by 255")
+        b, vc, _, h, w = context.shape
+        if vc < 2:
+            raise ValueError(f"the model needs at least 2 context views, got {vc}")
+        if h % PATCH_SIZE or w % PATCH_SIZE:
+            raise ValueError(f"image height and width must be multiples of {PATCH_SIZE}, got {h}x{w}")
+        if target is not None:
+            if target.ndim != 5 or target.shape[0] != b or target.shape[2:] != context.shape[2:]:
+                raise ValueError(
+                    f"target_images must be [B, Vt, 3, H, W] matching the context {tuple(context.shape)}, "
+                    f"got {tuple(target.shape)}"
+                )
+
+    def forward(self, context_images: Tensor, target_images: Tensor | None = None) -> ModelOutput:
+        self._check_inputs(context_images, target_images)
+        b, vc, _, h, w = context_images.shape
+        images = context_images if target_images is None else torch.cat([context_images, target_images], dim=1)
+        v = images.shape[1]
+        grid = (h // PATCH_SIZE, w // PATCH_SIZE)
+
+        tokens = self.encoder(images.flatten(0, 1)).unflatten(0, (b, v))  # [B, V, P, D]
+        layers = self.transformer(tokens, grid, num_context=vc)  # 4 x [B, V, T, 2·dim]
+
+        with torch.autocast(device_type=images.device.type, enabled=False):
+            layers = [x.float() for x in layers]
+            context_images = context_images.float()
+            extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0])
+            start = self.transformer.patch_start
+            context_tokens = [x[:, :vc, start:].flatten(0, 1) for x in layers]  # 4 x [B·Vc, P, 2·dim]
+
+            depth = self.depth_head(context_tokens, grid, (h, w)).unflatten(0, (b, vc))  # [B, Vc, H, W]
+            ctx_k, ctx_e = intrinsics[:, :vc], extrinsics[:, :vc]
+            means = unproject_depth(depth, ctx_k, ctx_e).reshape(b, vc, h * w, 3)
+
+            g = self.gaussian_head(context_tokens, grid, context_images.flatten(0, 1))
+            camera_quats = matrix_to_quat(ctx_e[..., :3, :3])  # [B, Vc, 4]
+            quats = _quat_multiply(camera_quats[:, :, None], g.quats.unflatten(0, (b, vc)))  # to view 0's frame
+            head_sh = None if g.sh is None else g.sh.unflatten(0, (b, vc))
+            sh = self.appearance(
+                context_images, means, g.features.unflatten(0, (b, vc)), head_sh, ctx_k, ctx_e
+            )  # [B, N, K, 3]
+            gaussians = Gaussians(
+                means=means.reshape(b, -1, 3),
+                quats=quats.reshape(b, -1, 4),
+                scales=g.scales.reshape(b, -1, 3),
+                opacities=g.opacities.reshape(b, -1),
+                sh=sh,
+            )
+        return ModelOutput(gaussians=gaussians, extrinsics=extrinsics, intrinsics=intrinsics, depth=depth)
+
+
+def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4, **kwargs) -> AESplatModel:
+    """Build an AESplat model from a size preset (``tiny``, ``base``, ``large``) and overrides.
+
+    appearance: one of full, no_gvsre, no_wcm, i2dc_only, baseline, baseline_i2dc (the paper's ablation rows).
+    kwargs: any :class:`ModelConfig` field (``near``, ``far``, ``weights``, ``num_context_views``, ...) and
+    ``rope``, ``num_register_tokens``, ``qk_norm`` (geometry transformer), ``encoder_registers``.
+    """
+    if size not in SIZES:
+        raise ValueError(f"unknown model size {size!r}; choose one of {', '.join(SIZES)}")
+    if appearance not in APPEARANCE_MODES:
+        raise ValueError(f"unknown appearance {appearance!r}; choose one of {', '.join(APPEARANCE_MODES)}")
+    cfg = replace(SIZES[size], appearance=appearance, sh_degree=sh_degree)
+    top = {f.name for f in fields(ModelConfig)} - {"encoder", "transformer"}
+    nested: dict[str, dict] = {"encoder": {}, "transformer": {}}
+    direct = {}
+    for key, value in kwargs.items():
+        if key in _NESTED:
+            part, name = _NESTED[key]
+            nested[part][name] = value
+        elif key in top:
+            direct[key] = value
+        else:
+            allowed = ", ".join(sorted(top | set(_NESTED)))
+            raise TypeError(f"build_model got an unknown option {key!r}; options are: {allowed}")
+    if direct.get("head_channels") is not None:
+        direct["head_channels"] = tuple(direct["head_channels"])
+    cfg = replace(
+        cfg,
+        encoder=replace(cfg.encoder, **nested["encoder"]),
+        transformer=replace(cfg.transformer, **nested["transformer"]),
+        **direct,
+    )
+    if cfg.appearance == "i2dc_only" and cfg.sh_degree != 0:
+        log.info("appearance=i2dc_only uses SH degree 0 (requested %d)", cfg.sh_degree)
+    return AESplatModel(cfg)
