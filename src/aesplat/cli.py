@@ -1,0 +1,128 @@
+"""The `aesplat` command.
+
+    aesplat fit|validate|test -c conf/FILE.yaml [-c conf/OVERLAY.yaml …] [--dotted.key value …]
+    aesplat predict …     (aesplat.predict)
+    aesplat bench …       (aesplat.bench)
+
+fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
+``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
+and the data, the parser holds three sections: ``checkpoint`` (ModelCheckpoint: last + best by val/psnr),
+``throughput`` and ``wandb``. Everything a run writes goes under ``trainer.default_root_dir`` (the run
+directory): checkpoints/, wandb/, config.yaml, test/. ``--ckpt_path last`` resumes from the newest of
+checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts fresh when there is none).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+DEFAULT_RUN_DIR = "outputs/run"
+
+
+@dataclass
+class WandbConfig:
+    """Weights & Biases settings; the run id is fixed per run directory (resumes continue the same run)."""
+
+    project: str = "aesplat"
+    entity: str | None = None
+    name: str | None = None  # display name; default: the run directory's name
+    mode: str = "auto"  # auto (online if reachable, else offline) | online | offline | disabled
+    tags: list[str] = field(default_factory=list)
+
+
+def _lightning_cli():
+    """Build the LightningCLI subclass (imports Lightning and the data/model stack only when needed)."""
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
+    from lightning.pytorch.loggers import WandbLogger
+
+    from aesplat.data import DataModule
+    from aesplat.train import AESplatModule
+    from aesplat.train.callbacks import Throughput
+    from aesplat.train.run_dir import latest_checkpoint, wandb_mode, wandb_run_id
+
+    class AESplatCLI(LightningCLI):
+        @staticmethod
+        def subcommands() -> dict[str, set[str]]:
+            commands = dict(LightningCLI.subcommands())
+            commands.pop("predict")  # `aesplat predict` is the image-to-Gaussians command, not Lightning's
+            return commands
+
+        def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
+            parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+            parser.set_defaults(
+                {
+                    "checkpoint.monitor": "val/psnr",
+                    "checkpoint.mode": "max",
+                    "checkpoint.save_top_k": 1,
+                    "checkpoint.save_last": True,
+                    "checkpoint.filename": "best-{step}",
+                    "checkpoint.auto_insert_metric_name": False,
+                }
+            )
+            parser.add_lightning_class_args(Throughput, "throughput")
+            parser.add_dataclass_arguments(WandbConfig, "wandb")
+
+        def before_instantiate_classes(self) -> None:
+            cfg = self.config[self.subcommand]
+            run_dir = cfg.trainer.default_root_dir or DEFAULT_RUN_DIR
+            cfg.trainer.default_root_dir = run_dir
+            if cfg.checkpoint.dirpath is None:
+                cfg.checkpoint.dirpath = str(Path(run_dir) / "checkpoints")
+
+        def instantiate_trainer(self, **kwargs):
+            cfg = self.config_init[self.subcommand]
+            if cfg.trainer.get("logger") in (None, True):
+                run_dir = Path(cfg.trainer.default_root_dir)
+                wb = cfg.wandb
+                mode = wandb_mode(wb.mode)
+                extra = {"mode": "disabled"} if mode == "disabled" else {}
+                kwargs["logger"] = WandbLogger(
+                    project=wb.project, entity=wb.entity, name=wb.name or run_dir.name, save_dir=str(run_dir),
+                    id=wandb_run_id(run_dir), offline=mode == "offline", tags=list(wb.tags), **extra,
+                )  # fmt: skip
+            return super().instantiate_trainer(**kwargs)
+
+        def before_fit(self) -> None:
+            fit = self.config_init["fit"]
+            if fit.get("ckpt_path") == "last":
+                found = latest_checkpoint(fit.trainer.default_root_dir)
+                fit["ckpt_path"] = str(found) if found else None
+                print(f"resuming from {found}" if found else "no checkpoint to resume from: starting fresh")
+
+    return AESplatCLI, AESplatModule, DataModule
+
+
+def run_lightning(argv: Sequence[str]) -> None:
+    """Run fit / validate / test through the LightningCLI."""
+    cli_class, module_class, data_class = _lightning_cli()
+    cli_class(
+        module_class,
+        data_class,
+        args=list(argv),
+        parser_kwargs={"parser_mode": "omegaconf"},
+        save_config_kwargs={"overwrite": True},
+        auto_configure_optimizers=False,
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point of the `aesplat` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "predict":
+        from aesplat.predict import main as predict_main
+
+        predict_main(argv[1:])
+    elif argv and argv[0] == "bench":
+        from aesplat.bench import main as bench_main
+
+        bench_main(argv[1:])
+    else:
+        run_lightning(argv)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,87 @@
+"""Evaluation outputs of `aesplat test`: per-scene CSV, summary JSON with overlap buckets, sample renders.
+
+Rows are plain dicts (one per scene) so that every rank's rows can be gathered and written by rank 0.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+from .metrics import OVERLAP_BUCKETS
+
+METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg")
+CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", *METRICS)
+
+
+def _mean(values: list[float]) -> float | None:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.mean(finite)) if finite else None
+
+
+def summarize(rows: list[dict], lpips_unavailable: str | None = None) -> dict:
+    """Mean of every metric over all scenes and per overlap bucket (small / medium / large / unknown).
+
+    A metric nobody could compute is reported as null; with ``lpips_unavailable`` its reason is recorded.
+    """
+    rows = sorted(rows, key=lambda r: r["scene"])
+    summary: dict = {"num_scenes": len(rows), "metrics": {m: _mean([r.get(m) for r in rows]) for m in METRICS}}
+    summary["buckets"] = {}
+    for bucket in (*OVERLAP_BUCKETS, "unknown"):
+        members = [r for r in rows if r["bucket"] == bucket]
+        if members or bucket != "unknown":
+            summary["buckets"][bucket] = {
+                "num_scenes": len(members),
+                **{m: _mean([r.get(m) for r in members]) for m in METRICS},
+            }
+    edges = {k: [lo, hi if math.isfinite(hi) else None] for k, (lo, hi) in OVERLAP_BUCKETS.items()}
+    summary["bucket_edges"] = edges
+    if lpips_unavailable:
+        summary["unavailable"] = {"lpips": lpips_unavailable}
+    return summary
+
+
+def write_results(rows: list[dict], out_dir: Path, lpips_unavailable: str | None = None) -> dict:
+    """Write ``per_scene.csv`` and ``summary.json`` into ``out_dir``; returns the summary."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rows = sorted(rows, key=lambda r: r["scene"])
+    with open(out_dir / "per_scene.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in CSV_COLUMNS})
+    summary = summarize(rows, lpips_unavailable)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def depth_to_rgb(depth: Tensor) -> Tensor:
+    """Depth [..., 1, H, W] -> grey-scale [..., 3, H, W] in [0, 1], near = bright, normalised per image."""
+    flat = depth.flatten(-3)
+    lo, hi = flat.amin(-1)[..., None, None, None], flat.amax(-1)[..., None, None, None]
+    near_bright = 1.0 - (depth - lo) / (hi - lo).clamp_min(1e-8)
+    return near_bright.expand(*depth.shape[:-3], 3, *depth.shape[-2:])
+
+
+def visual_grid(context: Tensor, target: Tensor, render: Tensor, depth: Tensor) -> Tensor:
+    """One row per scene: context views | target views | renders | rendered depth.
+
+    context [B, Vc, 3, H, W], target and render [B, Vt, 3, H, W], depth [B, Vt, 1, H, W] -> [3, B*H, X*W].
+    """
+    tiles = torch.cat([context, target, render.clamp(0, 1), depth_to_rgb(depth)], dim=1).float().cpu()
+    b, n, c, h, w = tiles.shape
+    return tiles.permute(2, 0, 3, 1, 4).reshape(c, b * h, n * w)
+
+
+def save_image(image: Tensor, path: Path) -> None:
+    """Save [3, H, W] in [0, 1] as PNG."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    array = (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
+    Image.fromarray(array).save(path)

@@ -1,0 +1,299 @@
+"""The LightningModule: wires the model, the rasterizer, the loss, the optimizer and the metrics together.
+
+A batch flows: context + target images -> model (masked attention: targets cannot change the Gaussians)
+-> Gaussians and *predicted* cameras of all views -> render the target views with the predicted target
+cameras -> photometric loss against the real target images. Ground-truth poses are used only in metrics.
+
+Optimization is manual so that a step with a non-finite loss or gradient is visibly skipped (parameters and
+AdamW state untouched, counted, logged) while the trainer's step counter, the schedule and the curriculum
+advance with the batch.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import asdict, dataclass, field
+from typing import Any
+from pathlib import Path
+
+import numpy as np
+import torch
+from lightning.pytorch import LightningModule
+from lightning.pytorch.loggers import WandbLogger
+from lightning.pytorch.utilities import rank_zero_warn
+from torch import Tensor
+from torchmetrics import MeanMetric
+
+from aesplat.types import BatchedExample, RenderOutput
+
+from .evaluation import save_image, visual_grid, write_results
+from .loss import LossConfig, PhotometricLoss, maybe_lpips
+from .metrics import overlap_bucket, psnr, relative_pose_errors, ssim
+from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates, discard_gradients
+
+
+@dataclass
+class NetConfig:
+    """Arguments of ``aesplat.model.build_model`` (SPEC section 3)."""
+
+    size: str = "tiny"
+    appearance: str = "full"  # full | no_gvsre | no_wcm | i2dc_only | baseline | baseline_i2dc
+    sh_degree: int = 4
+    near: float = 0.5
+    far: float = 100.0
+    weights: str | None = None  # local DINOv2/timm or VGGT checkpoint file; never downloaded
+    options: dict[str, Any] = field(default_factory=dict)  # any other build_model keyword (rope, ...)
+
+
+@dataclass
+class RenderConfig:
+    """Rasterizer settings (SPEC section 4)."""
+
+    backend: str = "auto"  # auto | torch | gsplat
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    options: dict[str, Any] = field(default_factory=dict)  # RenderSettings fields (tile_size, compile, ...)
+
+
+@dataclass
+class EvalConfig:
+    """Where `aesplat test` writes and what it logs."""
+
+    output_dir: str | None = None  # default: <trainer.default_root_dir>/test
+    num_sample_renders: int = 8  # scenes whose render grid is saved as PNG
+    log_images_every_n_steps: int = 500  # training image grids sent to the logger
+    metrics_lpips: bool = True  # compute the LPIPS metric when its weights are present
+
+
+class AESplatModule(LightningModule):
+    """Pose-free feed-forward 3DGS training and evaluation (AESplat)."""
+
+    def __init__(
+        self,
+        net: NetConfig | None = None,
+        loss: LossConfig | None = None,
+        optim: OptimConfig | None = None,
+        render: RenderConfig | None = None,
+        eval: EvalConfig | None = None,
+    ) -> None:
+        """Each argument is a config dataclass (or its dict form, as stored in checkpoints); None = defaults."""
+        super().__init__()
+        net, loss, optim, render, eval = (
+            _as(NetConfig, net), _as(LossConfig, loss), _as(OptimConfig, optim),
+            _as(RenderConfig, render), _as(EvalConfig, eval),
+        )  # fmt: skip
+        self.save_hyperparameters(
+            {
+                "net": asdict(net),
+                "loss": asdict(loss),
+                "optim": asdict(optim),
+                "render": asdict(render),
+                "eval": asdict(eval),
+            }  # fmt: skip
+        )
+        self.net_cfg, self.optim_cfg, self.render_cfg, self.eval_cfg = net, optim, render, eval
+        self.automatic_optimization = False
+
+        from aesplat.model import build_model
+
+        self.model = build_model(
+            size=net.size, appearance=net.appearance, sh_degree=net.sh_degree, near=net.near, far=net.far,
+            weights=net.weights, **net.options,
+        )  # fmt: skip
+        if loss.lpips_weight > 0 or eval.metrics_lpips:
+            lpips, self.lpips_unavailable = maybe_lpips(required=loss.lpips_weight > 0)
+        else:
+            lpips, self.lpips_unavailable = None, "disabled by eval.metrics_lpips: false"
+        self.lpips = lpips
+        self.loss_fn = PhotometricLoss(loss, lpips)
+        if self.lpips_unavailable and loss.lpips_weight == 0:
+            rank_zero_warn(f"LPIPS metric unavailable: {self.lpips_unavailable}")
+        self.skipped_steps = 0
+        self.val_means = torch.nn.ModuleDict({k: MeanMetric() for k in _METRIC_KEYS})
+        self._test_rows: list[dict] = []
+
+    # ----------------------------------------------------------------------------------------- data movement
+    def transfer_batch_to_device(self, batch: BatchedExample, device: torch.device, dataloader_idx: int):
+        return batch.to(device)
+
+    def on_after_batch_transfer(self, batch: BatchedExample, dataloader_idx: int) -> BatchedExample:
+        return batch.float_images()
+
+    # ----------------------------------------------------------------------------------------- forward
+    def forward(self, batch: BatchedExample):
+        """Model outputs and the renders of the target views with the predicted target cameras."""
+        vc = batch.context.num_views
+        height, width = batch.context.image_shape
+        out = self.model(batch.context.images, batch.target.images)
+        background = torch.tensor(self.render_cfg.background, device=self.device)
+        from aesplat.render import render
+
+        rendered = render(
+            out.gaussians, out.extrinsics[:, vc:], out.intrinsics[:, vc:], height, width,
+            background=background, backend=self.render_cfg.backend, **self.render_cfg.options,
+        )  # fmt: skip
+        return out, rendered
+
+    # ----------------------------------------------------------------------------------------- training
+    def on_train_batch_start(self, batch: BatchedExample, batch_idx: int) -> None:
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is not None and hasattr(datamodule, "set_global_step"):
+            datamodule.set_global_step(self.global_step)  # view-gap curriculum
+
+    def training_step(self, batch: BatchedExample, batch_idx: int) -> Tensor:
+        optimizer = self.optimizers()
+        scheduler = self.lr_schedulers()
+        for name, lr in current_learning_rates(optimizer.optimizer).items():
+            self.log(f"lr/{name}", lr, on_step=True, on_epoch=False)
+
+        out, rendered = self(batch)
+        terms = self.loss_fn(rendered.color, batch.target.images)
+        optimizer.zero_grad(set_to_none=True)
+        # Always backward, even on a NaN loss: under DDP every rank must join the gradient all-reduce.
+        self.manual_backward(terms["total"])
+        grad_norm, finite = clip_and_check(self.model.parameters(), self.optim_cfg.grad_clip, terms["total"])
+        non_finite = self.trainer.strategy.reduce(torch.tensor(float(not finite), device=self.device), "sum")
+        if non_finite.item() > 0:
+            discard_gradients(optimizer.optimizer)
+            self.skipped_steps += 1
+            rank_zero_warn(f"step {self.global_step}: non-finite loss or gradient, update skipped")
+        optimizer.step()
+        scheduler.step()
+
+        b = batch.batch_size
+        self.log("train/loss", terms["total"], prog_bar=True, batch_size=b)
+        self.log("train/mse", terms["mse"], batch_size=b)
+        if "lpips" in terms:
+            self.log("train/lpips", terms["lpips"], batch_size=b)
+        with torch.no_grad():
+            train_psnr = psnr(rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1)).mean()
+        self.log("train/psnr", train_psnr, prog_bar=True, batch_size=b)
+        self.log("train/grad_norm", grad_norm.float(), batch_size=b)
+        self.log("train/skipped_steps", float(self.skipped_steps), batch_size=b)
+        every = self.eval_cfg.log_images_every_n_steps
+        if every > 0 and self.global_step % every == 0:
+            self._log_images("train/images", batch, out, rendered)
+        return terms["total"].detach()
+
+    # ----------------------------------------------------------------------------------------- evaluation
+    def _evaluate(self, batch: BatchedExample) -> tuple[dict[str, Tensor], RenderOutput, object]:
+        """Per-scene metrics: image metrics averaged over each scene's target views, pose errors over views."""
+        out, rendered = self(batch)
+        b, vt = batch.target.images.shape[:2]
+        pred, target = rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1)
+        metrics = {"psnr": psnr(pred, target), "ssim": ssim(pred, target)}
+        if self.lpips is not None:
+            metrics["lpips"] = self.lpips(pred, target)
+        metrics = {k: v.reshape(b, vt).mean(1) for k, v in metrics.items()}
+        gt = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1)
+        rot, trans = relative_pose_errors(out.extrinsics, gt)
+        metrics["rot_err_deg"], metrics["trans_err_deg"] = rot.mean(1), trans.mean(1)
+        return metrics, rendered, out
+
+    def validation_step(self, batch: BatchedExample, batch_idx: int) -> None:
+        metrics, rendered, out = self._evaluate(batch)
+        for key, values in metrics.items():
+            self.val_means[key].update(values)
+        if batch_idx == 0:
+            self._log_images("val/images", batch, out, rendered)
+
+    def on_validation_epoch_end(self) -> None:
+        for key, metric in self.val_means.items():
+            if key == "lpips" and self.lpips is None:
+                continue
+            self.log(f"val/{key}", metric.compute(), prog_bar=key == "psnr", sync_dist=False)
+            metric.reset()
+
+    def test_step(self, batch: BatchedExample, batch_idx: int) -> None:
+        metrics, rendered, _ = self._evaluate(batch)
+        for i in range(batch.batch_size):
+            overlap = None if batch.overlap is None else float(batch.overlap[i])
+            row = {
+                "scene": batch.scene[i] if batch.scene else f"batch{batch_idx}_{i}",
+                "dataset": batch.dataset[i] if batch.dataset else "",
+                "overlap": overlap,
+                "bucket": overlap_bucket(overlap),
+                "gap": None if batch.gap is None else int(batch.gap[i]),
+                **{k: float(v[i]) for k, v in metrics.items()},
+            }
+            self._test_rows.append(row)
+            if len(self._test_rows) <= self.eval_cfg.num_sample_renders:
+                grid = visual_grid(batch.context.images[i : i + 1], batch.target.images[i : i + 1],
+                                   rendered.color[i : i + 1], rendered.depth[i : i + 1])  # fmt: skip
+                save_image(grid, self.test_output_dir / "renders" / f"{_safe(row['scene'])}.png")
+        for key, values in metrics.items():
+            self.log(f"test/{key}", values.mean(), batch_size=batch.batch_size, sync_dist=True)
+
+    def on_test_epoch_start(self) -> None:
+        self._test_rows = []
+
+    def on_test_epoch_end(self) -> None:
+        rows = self._test_rows
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            gathered: list[list[dict]] = [[] for _ in range(torch.distributed.get_world_size())]
+            torch.distributed.all_gather_object(gathered, rows)
+            rows = [row for part in gathered for row in part]
+        if self.trainer.is_global_zero:
+            summary = write_results(rows, self.test_output_dir, self.lpips_unavailable)
+            print(f"wrote {len(rows)} scenes to {self.test_output_dir}: {summary['metrics']}")
+
+    @property
+    def test_output_dir(self) -> Path:
+        if self.eval_cfg.output_dir:
+            return Path(self.eval_cfg.output_dir)
+        return Path(self.trainer.default_root_dir) / "test"
+
+    # ----------------------------------------------------------------------------------------- optimizer
+    def configure_optimizers(self):
+        pretrained = bool(getattr(self.model, "pretrained_backbone", False))
+        optimizer, scheduler = build_optimizer(
+            self.model.named_parameter_groups(), self.optim_cfg, pretrained, total_steps=self.trainer.max_steps
+        )
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    # ----------------------------------------------------------------------------------------- checkpoints
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["skipped_steps"] = self.skipped_steps
+        checkpoint["rng"] = {
+            "torch": torch.get_rng_state(),
+            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+            "numpy": np.random.get_state(),  # noqa: NPY002 - the global state is what code uses
+            "python": random.getstate(),
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.skipped_steps = int(checkpoint.get("skipped_steps", 0))
+        rng = checkpoint.get("rng")
+        if rng is not None and self.trainer is not None and self.trainer.training:
+            torch.set_rng_state(rng["torch"])
+            if rng["cuda"] and torch.cuda.is_available() and len(rng["cuda"]) == torch.cuda.device_count():
+                torch.cuda.set_rng_state_all(rng["cuda"])
+            np.random.set_state(rng["numpy"])  # noqa: NPY002
+            random.setstate(rng["python"])
+
+    # ----------------------------------------------------------------------------------------- logging
+    def _log_images(self, key: str, batch: BatchedExample, out, rendered: RenderOutput) -> None:
+        if not isinstance(self.logger, WandbLogger) or not self.trainer.is_global_zero:
+            return
+        n = min(4, batch.batch_size)
+        grid = visual_grid(batch.context.images[:n], batch.target.images[:n], rendered.color[:n].detach(),
+                           rendered.depth[:n].detach())  # fmt: skip
+        caption = "context | target | render | rendered depth"
+        self.logger.log_image(key=key, images=[grid], caption=[caption], step=self.global_step)
+
+
+_METRIC_KEYS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg")
+
+
+def _as(cls, value):
+    """Accept a config dataclass, a plain dict (checkpoints store hyperparameters as dicts) or None."""
+    if value is None:
+        return cls()
+    if isinstance(value, cls):
+        return value
+    if isinstance(value, dict):
+        return cls(**value)
+    raise TypeError(f"expected {cls.__name__} or a dict, got {type(value).__name__}")
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)

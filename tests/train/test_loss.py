@@ -1,0 +1,83 @@
+"""LPIPS loading from the local torch hub cache (never downloaded) and the photometric loss."""
+
+import pytest
+import torch
+import torchvision
+
+from aesplat.train.loss import (
+    VGG16_FILE,
+    LossConfig,
+    LpipsWeightsMissing,
+    PhotometricLoss,
+    load_lpips_network,
+    maybe_lpips,
+    vgg16_weights_path,
+)
+
+
+@pytest.fixture
+def empty_torch_home(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch_home"))
+    return tmp_path / "torch_home"
+
+
+@pytest.fixture
+def fake_vgg_weights(empty_torch_home):
+    """A VGG16 feature checkpoint with torchvision's key layout (random values) where torchvision keeps it."""
+    features = torchvision.models.vgg.make_layers(torchvision.models.vgg.cfgs["D"])
+    path = empty_torch_home / "hub" / "checkpoints" / VGG16_FILE
+    path.parent.mkdir(parents=True)
+    torch.save({f"features.{k}": v for k, v in features.state_dict().items()}, path)
+    return path, features
+
+
+def test_missing_weights_error_names_file_directory_and_opt_out(empty_torch_home, monkeypatch):
+    calls = []
+    monkeypatch.setattr(torch.hub, "download_url_to_file", lambda *a, **k: calls.append(a))
+    with pytest.raises(LpipsWeightsMissing) as info:
+        load_lpips_network()
+    message = str(info.value)
+    expected = empty_torch_home / "hub" / "checkpoints" / VGG16_FILE
+    assert vgg16_weights_path() == expected
+    assert str(expected) in message and str(expected.parent) in message
+    assert "lpips_weight 0" in message
+    assert not calls, "nothing may be downloaded"
+
+
+def test_optional_lpips_reports_unavailable(empty_torch_home):
+    lpips, reason = maybe_lpips(required=False)
+    assert lpips is None and VGG16_FILE in reason
+    with pytest.raises(LpipsWeightsMissing):
+        maybe_lpips(required=True)
+
+
+def test_lpips_loads_local_weights_frozen_and_outside_the_module_tree(fake_vgg_weights):
+    path, features = fake_vgg_weights
+    lpips, reason = maybe_lpips(required=True)
+    assert reason is None
+    net = lpips._net
+    assert torch.equal(getattr(net.net.slice1, "0").weight, features[0].weight)
+    assert torch.equal(getattr(net.net.slice5, "28").weight, features[28].weight)
+    assert not any(p.requires_grad for p in net.parameters())
+
+    loss = PhotometricLoss(LossConfig(mse_weight=1.0, lpips_weight=0.05), lpips)
+    assert list(loss.parameters()) == [] and loss.state_dict() == {}, "LPIPS must never be saved or trained"
+    target = torch.rand(1, 2, 3, 32, 32)
+    same = loss(target, target)
+    pred = (target + 0.2 * torch.randn_like(target)).clamp(0, 1).requires_grad_()
+    diff = loss(pred, target)
+    assert same["lpips"].item() == pytest.approx(0.0, abs=1e-6)
+    assert diff["lpips"].item() > 0
+    assert diff["total"].item() == pytest.approx(diff["mse"].item() + 0.05 * diff["lpips"].item(), rel=1e-5)
+    diff["total"].backward()
+    assert torch.isfinite(pred.grad).all() and pred.grad.abs().sum() > 0
+
+
+def test_mse_only_loss():
+    loss = PhotometricLoss(LossConfig(lpips_weight=0.0), None)
+    pred, target = torch.zeros(1, 1, 3, 4, 4), torch.full((1, 1, 3, 4, 4), 0.5)
+    terms = loss(pred, target)
+    assert set(terms) == {"mse", "total"}
+    assert terms["total"].item() == pytest.approx(0.25)
+    with pytest.raises(ValueError, match="LPIPS"):
+        PhotometricLoss(LossConfig(lpips_weight=0.05), None)

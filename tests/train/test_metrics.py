@@ -1,0 +1,106 @@
+"""Image metrics, relative pose errors and the evaluation writers."""
+
+import csv
+import json
+import math
+
+import pytest
+import torch
+
+from aesplat.geometry import make_pose, quat_to_matrix
+from aesplat.train.evaluation import save_image, summarize, visual_grid, write_results
+from aesplat.train.metrics import overlap_bucket, psnr, relative_pose_errors, ssim
+
+
+def test_psnr_is_per_image():
+    target = torch.zeros(2, 3, 8, 8)
+    pred = target.clone()
+    pred[0] += 0.1  # MSE 0.01 -> 20 dB
+    pred[1] += 0.01  # MSE 1e-4 -> 40 dB
+    assert psnr(pred, target).tolist() == pytest.approx([20.0, 40.0], rel=1e-4)
+
+
+def test_ssim_identity_and_noise():
+    image = torch.rand(2, 3, 32, 32)
+    assert ssim(image, image).tolist() == pytest.approx([1.0, 1.0], abs=1e-5)
+    noisy = (image + 0.3 * torch.randn_like(image)).clamp(0, 1)
+    assert (ssim(noisy, image) < 0.9).all()
+
+
+def _random_poses(b, v, generator):
+    q = torch.randn(b, v, 4, generator=generator)
+    t = torch.randn(b, v, 3, generator=generator)
+    return make_pose(quat_to_matrix(q), t)
+
+
+def test_pose_errors_ignore_world_frame_and_scale():
+    g = torch.Generator().manual_seed(0)
+    gt = _random_poses(2, 3, g)
+    world = _random_poses(2, 1, g)
+    # The prediction lives in another world frame and at another scale: errors must still be zero.
+    pred = world @ gt
+    pred[..., :3, 3] *= 3.0
+    rot, trans = relative_pose_errors(pred, gt)
+    assert rot.shape == trans.shape == (2, 2)
+    assert rot.abs().max() < 1e-2 and trans.abs().max() < 1e-2
+
+
+def test_pose_errors_known_angles():
+    eye = torch.eye(4)
+    gt = torch.stack([eye, make_pose(torch.eye(3), torch.tensor([1.0, 0.0, 0.0]))])[None]
+    angle = math.radians(30.0)
+    rot_z = torch.tensor(
+        [[math.cos(angle), -math.sin(angle), 0.0], [math.sin(angle), math.cos(angle), 0.0], [0.0, 0.0, 1.0]]
+    )
+    pred = torch.stack([eye, make_pose(rot_z, torch.tensor([0.0, 2.0, 0.0]))])[None]
+    rot, trans = relative_pose_errors(pred, gt)
+    assert rot.item() == pytest.approx(30.0, abs=1e-3)
+    assert trans.item() == pytest.approx(90.0, abs=1e-3)
+
+
+def test_overlap_buckets():
+    assert overlap_bucket(0.1) == "small"
+    assert overlap_bucket(0.4) == "medium"
+    assert overlap_bucket(0.9) == "large"
+    assert overlap_bucket(float("nan")) == "unknown"
+    assert overlap_bucket(None) == "unknown"
+
+
+def _rows():
+    rows = []
+    for i, (overlap, value) in enumerate([(0.1, 10.0), (0.2, 12.0), (0.4, 20.0), (0.8, 30.0), (None, 40.0)]):
+        rows.append({"scene": f"s{i}", "dataset": "synthetic", "overlap": overlap, "bucket": overlap_bucket(overlap),
+                     "gap": 5, "psnr": value, "ssim": 0.5, "lpips": None, "rot_err_deg": 1.0,
+                     "trans_err_deg": 2.0})  # fmt: skip
+    return rows
+
+
+def test_summary_means_and_buckets():
+    summary = summarize(_rows(), lpips_unavailable="no weights")
+    assert summary["num_scenes"] == 5
+    assert summary["metrics"]["psnr"] == pytest.approx(22.4)
+    assert summary["metrics"]["lpips"] is None
+    assert summary["unavailable"] == {"lpips": "no weights"}
+    assert summary["buckets"]["small"]["psnr"] == pytest.approx(11.0)
+    assert summary["buckets"]["small"]["num_scenes"] == 2
+    assert summary["buckets"]["medium"]["psnr"] == pytest.approx(20.0)
+    assert summary["buckets"]["large"]["psnr"] == pytest.approx(30.0)
+    assert summary["buckets"]["unknown"]["num_scenes"] == 1
+
+
+def test_write_results_csv_and_json(tmp_path):
+    summary = write_results(list(reversed(_rows())), tmp_path / "out")
+    with open(tmp_path / "out" / "per_scene.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["scene"] for r in rows] == ["s0", "s1", "s2", "s3", "s4"]
+    assert rows[0]["bucket"] == "small" and float(rows[0]["psnr"]) == 10.0 and rows[0]["lpips"] == ""
+    assert json.loads((tmp_path / "out" / "summary.json").read_text()) == summary
+
+
+def test_visual_grid_and_png(tmp_path):
+    ctx, tgt = torch.rand(2, 2, 3, 8, 10), torch.rand(2, 1, 3, 8, 10)
+    grid = visual_grid(ctx, tgt, tgt, torch.rand(2, 1, 1, 8, 10))
+    assert grid.shape == (3, 16, 50)
+    assert torch.equal(grid[:, 8:16, 0:10], ctx[1, 0])
+    save_image(grid, tmp_path / "g.png")
+    assert (tmp_path / "g.png").stat().st_size > 0

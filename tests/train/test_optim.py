@@ -1,0 +1,133 @@
+"""Optimizer groups, the warm-up + cosine schedule and the non-finite step guard."""
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from aesplat.model import build_model
+from aesplat.train.optim import (
+    OptimConfig,
+    WarmupCosine,
+    build_optimizer,
+    build_param_groups,
+    clip_and_check,
+    current_learning_rates,
+    discard_gradients,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_model():
+    return build_model(size="tiny", appearance="full", sh_degree=2)
+
+
+def test_groups_cover_every_trainable_parameter_once(tiny_model):
+    groups = build_param_groups(tiny_model.named_parameter_groups(), OptimConfig(), pretrained_backbone=False)
+    ids = [id(p) for g in groups for p in g["params"]]
+    trainable = {id(p) for p in tiny_model.parameters() if p.requires_grad}
+    assert len(ids) == len(set(ids)), "a parameter is in two optimizer groups"
+    assert set(ids) == trainable
+    names = {g["name"] for g in groups}
+    assert {"appearance", "rest", "backbone"} <= names
+
+
+def test_group_learning_rates_and_decay(tiny_model):
+    cfg = OptimConfig(lr=1e-4, appearance_lr=3e-4, backbone_lr_scale=0.1)
+    opt, _ = build_optimizer(tiny_model.named_parameter_groups(), cfg, pretrained_backbone=False, total_steps=10)
+    assert tiny_model.pretrained_backbone is False
+    for g in opt.param_groups:
+        want = {"appearance": 3e-4, "rest": 1e-4, "backbone": 1e-4}[g["name"]]
+        assert g["initial_lr"] == pytest.approx(want)
+        assert g["weight_decay"] == (0.05 if g["decay"] else 0.0)
+        if not g["decay"]:
+            continue
+        assert all(p.ndim >= 2 for p in g["params"])
+    assert opt.defaults["betas"] == (0.9, 0.95)
+    # A pretrained backbone trains at a tenth of the base rate.
+    opt, _ = build_optimizer(tiny_model.named_parameter_groups(), cfg, pretrained_backbone=True, total_steps=10)
+    assert [g["initial_lr"] for g in opt.param_groups if g["name"] == "backbone"] == pytest.approx([1e-5, 1e-5])
+
+
+def test_no_decay_for_norms_biases_tokens(tiny_model):
+    groups = build_param_groups(tiny_model.named_parameter_groups(), OptimConfig(), pretrained_backbone=False)
+    no_decay = {id(p) for g in groups if not g["decay"] for p in g["params"]}
+    named = dict(tiny_model.named_parameters())
+    for name, p in named.items():
+        if name.endswith("bias") or "norm" in name.lower() or "token" in name.lower():
+            assert id(p) in no_decay, name
+
+
+def test_duplicate_parameter_is_an_error():
+    layer = nn.Linear(2, 2)
+    groups = {"rest": [("w", layer.weight)], "appearance": [("w", layer.weight)]}
+    with pytest.raises(ValueError, match="also in"):
+        build_param_groups(groups, OptimConfig(), pretrained_backbone=False)
+
+
+def test_warmup_then_cosine():
+    sched = WarmupCosine(warmup_steps=10, total_steps=110, min_ratio=0.1)
+    assert sched(0) == pytest.approx(0.1)
+    assert sched(9) == pytest.approx(1.0)
+    assert sched(10) == pytest.approx(1.0)
+    assert sched(60) == pytest.approx(0.1 + 0.9 * 0.5)
+    assert sched(110) == pytest.approx(0.1)
+    assert sched(10_000) == pytest.approx(0.1)
+    values = [sched(s) for s in range(10, 111)]
+    assert all(a >= b for a, b in zip(values, values[1:]))
+
+
+def test_scheduler_steps_every_group_and_reports_names():
+    layer_a, layer_b = nn.Linear(3, 3), nn.Linear(3, 3)
+    named = {"appearance": list(layer_a.named_parameters()), "rest": list(layer_b.named_parameters())}
+    cfg = OptimConfig(warmup_steps=4)
+    opt, sched = build_optimizer(named, cfg, pretrained_backbone=False, total_steps=20)
+    for _ in range(4):
+        opt.step()
+        sched.step()
+    lrs = current_learning_rates(opt)
+    assert lrs["appearance"] == pytest.approx(3e-4)
+    assert lrs["rest"] == pytest.approx(1e-4)
+
+
+def _adam_snapshot(opt):
+    return {id(p): {k: v.clone() for k, v in s.items()} for p, s in opt.state.items()}
+
+
+@pytest.mark.parametrize("poison", ["gradient", "loss"])
+def test_non_finite_step_leaves_params_and_adam_state_bit_identical(poison):
+    model = nn.Sequential(nn.Linear(4, 8), nn.LayerNorm(8), nn.Linear(8, 1))
+    named = {"rest": list(model.named_parameters())}
+    opt, _ = build_optimizer(named, OptimConfig(), pretrained_backbone=False, total_steps=10)
+    x = torch.randn(5, 4)
+    model(x).pow(2).mean().backward()
+    opt.step()  # Adam state exists
+    params = [p.detach().clone() for p in model.parameters()]
+    state = _adam_snapshot(opt)
+
+    opt.zero_grad(set_to_none=True)
+    loss = model(x).pow(2).mean()
+    if poison == "loss":
+        loss = loss * float("nan")
+    loss.backward()
+    if poison == "gradient":
+        model[0].weight.grad[0, 0] = float("inf")
+    norm, finite = clip_and_check(model.parameters(), 0.5, loss)
+    assert not finite and not math.isfinite(norm.item())
+    discard_gradients(opt)
+    opt.step()
+    for before, after in zip(params, model.parameters()):
+        assert torch.equal(before, after)
+    after_state = _adam_snapshot(opt)
+    for pid, entries in state.items():
+        for k, v in entries.items():
+            assert torch.equal(v, after_state[pid][k]), k
+
+
+def test_clip_reports_the_unclipped_norm():
+    p = nn.Parameter(torch.zeros(4))
+    p.grad = torch.full((4,), 2.0)
+    norm, finite = clip_and_check([p], 0.5, torch.tensor(1.0))
+    assert finite and norm.item() == pytest.approx(4.0)
+    assert p.grad.norm().item() == pytest.approx(0.5, rel=1e-4)
