@@ -1,0 +1,75 @@
+#!/usr/bin/env python
+"""Convert pixelSplat-style chunks (RealEstate10K, ACID, the synthetic set) into WebDataset shards.
+
+    python data_prep/to_shards.py --src DIR --out OUT [--size 256 --eval-index FILE --workers N]
+
+SRC holds train/ and test/ folders of *.torch chunks (each with index.json). Writes OUT/train/*.tar,
+OUT/test/*.tar and OUT/manifest.json (counts, skipped scenes with reasons, SHA-256 per shard). Rerunning the
+same command resumes: completed shards whose checksum matches are kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from aesplat.data.shards import convert_dataset
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--src", required=True, help="chunk folder with train/ and test/ (pixelSplat layout)")
+    p.add_argument("--out", required=True, help="shard folder to write")
+    p.add_argument("--size", type=int, default=256, help="square output side in pixels (default 256)")
+    p.add_argument(
+        "--eval-index",
+        default=None,
+        help="evaluation index JSON for test/ (default SRC/evaluation_index.json if present)",
+    )
+    p.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    p.add_argument(
+        "--min-gap",
+        type=int,
+        default=None,
+        help="smallest training context gap in frames (default SRC/dataset.json, else 25)",
+    )
+    p.add_argument(
+        "--max-gap",
+        type=int,
+        default=None,
+        help="largest training context gap in frames (default SRC/dataset.json, else 90)",
+    )
+    p.add_argument("--samples-per-scene", type=int, default=8, help="training samples per scene (default 8)")
+    p.add_argument(
+        "--train-targets", type=int, default=3, help="targets stored per training sample (default 3)"
+    )
+    p.add_argument(
+        "--max-fov", type=float, default=100.0, help="skip scenes with a wider FOV, degrees (default 100)"
+    )
+    p.add_argument(
+        "--min-baseline", type=float, default=1e-3, help="skip scenes whose cameras move less than this"
+    )
+    p.add_argument(
+        "--expect-shape",
+        type=int,
+        nargs=2,
+        default=None,
+        metavar=("H", "W"),
+        help="skip scenes whose images are not H x W (RealEstate10K: 360 640)",
+    )
+    p.add_argument("--jpeg-quality", type=int, default=95)
+    p.add_argument("--seed", type=int, default=0, help="seed of the training-sample draw (default 0)")
+    p.add_argument("--dataset", default=None, help="name written into each sample's meta (default from SRC)")
+    a = p.parse_args(argv)
+    manifest = convert_dataset(
+        a.src, a.out, size=a.size, eval_index=a.eval_index, workers=a.workers, min_gap=a.min_gap,
+        max_gap=a.max_gap, samples_per_scene=a.samples_per_scene, train_targets=a.train_targets,
+        max_fov_deg=a.max_fov, min_baseline=a.min_baseline, expect_shape=a.expect_shape,
+        jpeg_quality=a.jpeg_quality, seed=a.seed, dataset=a.dataset,
+    )  # fmt: skip
+    summary = {s: {k: v for k, v in e.items() if k != "shards"} for s, e in manifest["splits"].items()}
+    print(json.dumps(summary, indent=1))
+
+
+if __name__ == "__main__":
+    main()

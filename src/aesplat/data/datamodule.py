@@ -1,0 +1,192 @@
+"""The LightningDataModule: shards -> ``BatchedExample`` streams for fit / validate / test (SPEC sections 5, 6).
+
+Plain constructor arguments, so LightningCLI builds it from YAML. Rank and world size come from the trainer in
+``setup`` (or ``set_distributed`` in tests), never from environment variables. The training engineer calls
+``set_global_step(step)`` every step; the value sits in shared memory, so every worker's curriculum follows it.
+``state_dict`` / ``load_state_dict`` carry the step (and seed) through checkpoints.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader
+
+from .curriculum import GapCurriculum
+from .stream import EvalStream, StreamConfig, TrainStream, counter_totals, new_counters
+
+log = logging.getLogger("aesplat.data")
+
+
+class DataModule(L.LightningDataModule):
+    """Context/target batches streamed from ``root/{train,test}/*.tar`` (made by ``data_prep/to_shards.py``).
+
+    Args:
+        root: shard folder holding ``train/`` and ``test/`` (and ``manifest.json``).
+        image_size: square side fed to the model (shard images of another size are resized; use a multiple
+            of 14 for the ViT patch size).
+        batch_size / eval_batch_size: samples per training / evaluation batch (per rank).
+        num_workers: DataLoader worker processes per rank.
+        num_context_views, num_target_views: views per training sample (evaluation uses every target of the
+            evaluation index unless ``eval_num_target_views`` is set).
+        near, far: depth range written into every batch.
+        gap_initial, gap_final, gap_warmup_steps: the view-gap curriculum (allowed context gap range in frames
+            at step 0 and after the warm-up; paper: 25 -> 90).
+        flip_augment: mirror half of the training samples, cameras included.
+        train_batches_per_epoch: batches every rank yields per training epoch (the stream itself is infinite).
+        shuffle_buffer: samples held per worker for shuffling.
+        seed: base seed of the training streams.
+    """
+
+    def __init__(
+        self,
+        root: str = "outputs/shards/synthetic",
+        image_size: int = 224,
+        batch_size: int = 10,
+        num_workers: int = 4,
+        num_context_views: int = 2,
+        num_target_views: int = 1,
+        near: float = 1.0,
+        far: float = 100.0,
+        gap_initial: tuple[int, int] = (25, 25),
+        gap_final: tuple[int, int] = (25, 90),
+        gap_warmup_steps: int = 150_000,
+        flip_augment: bool = True,
+        train_batches_per_epoch: int = 1000,
+        eval_batch_size: int = 1,
+        eval_num_target_views: int | None = None,
+        shuffle_buffer: int = 64,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if image_size < 1 or batch_size < 1 or eval_batch_size < 1 or num_workers < 0:
+            raise ValueError("image_size, batch_size and eval_batch_size must be >= 1, num_workers >= 0")
+        if not 0 < near < far:
+            raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
+        self.root = Path(root)
+        self.image_size = image_size
+        self.batch_size = batch_size
+        self.eval_batch_size = eval_batch_size
+        self.num_workers = num_workers
+        self.num_context_views = num_context_views
+        self.num_target_views = num_target_views
+        self.eval_num_target_views = eval_num_target_views
+        self.near, self.far = float(near), float(far)
+        self.curriculum = GapCurriculum(tuple(gap_initial), tuple(gap_final), gap_warmup_steps)
+        self.flip_augment = flip_augment
+        self.train_batches_per_epoch = train_batches_per_epoch
+        self.shuffle_buffer = shuffle_buffer
+        self.seed = seed
+        self._step = torch.zeros(1, dtype=torch.int64).share_memory_()
+        self._counters = {split: new_counters(num_workers) for split in ("train", "val", "test")}
+        self._rank: int | None = None
+        self._world_size: int | None = None
+
+    # ------------------------------------------------------------------------------------------- distributed
+
+    def set_distributed(self, rank: int, world_size: int) -> None:
+        """Fix rank and world size explicitly (tests, custom launchers); else ``setup`` takes the trainer's."""
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank {rank} is outside world size {world_size}")
+        self._rank, self._world_size = rank, world_size
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.trainer is not None and self._rank is None:
+            self._rank, self._world_size = self.trainer.global_rank, self.trainer.world_size
+            self.set_global_step(max(self.global_step, self.trainer.global_step))
+
+    @property
+    def rank(self) -> int:
+        return 0 if self._rank is None else self._rank
+
+    @property
+    def world_size(self) -> int:
+        return 1 if self._world_size is None else self._world_size
+
+    # ------------------------------------------------------------------------------------------- curriculum
+
+    def set_global_step(self, step: int) -> None:
+        """Tell every (already running) worker the current global step; the curriculum follows it."""
+        self._step[0] = int(step)
+
+    @property
+    def global_step(self) -> int:
+        return int(self._step[0])
+
+    def allowed_gap(self) -> tuple[int, int]:
+        """The context-gap range the curriculum allows now."""
+        return self.curriculum.allowed(self.global_step)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"global_step": self.global_step, "seed": self.seed}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.set_global_step(int(state_dict["global_step"]))
+        self.seed = int(state_dict.get("seed", self.seed))
+
+    # ------------------------------------------------------------------------------------------- counters
+
+    def data_errors(self) -> dict[str, int]:
+        """Skipped-data counters summed over workers, e.g. ``{"train/corrupt_samples": 0, ...}`` (to log)."""
+        out = {}
+        for split, table in self._counters.items():
+            out.update({f"{split}/{k}": v for k, v in counter_totals(table).items()})
+        return out
+
+    # ------------------------------------------------------------------------------------------- loaders
+
+    def shards(self, split: str) -> list[str]:
+        """Sorted shard paths of ``root/<split>``; a clear error if there are none."""
+        folder = self.root / split
+        found = sorted(str(p) for p in folder.glob("*.tar"))
+        if not found:
+            raise FileNotFoundError(
+                f"no shards in {folder}: create them with `python data_prep/to_shards.py --src SRC --out "
+                f"{self.root}` (or `python data_prep/synthetic.py --out SRC` first for the synthetic set)"
+            )
+        manifest = self.root / "manifest.json"
+        if manifest.exists():
+            size = json.loads(manifest.read_text()).get("config", {}).get("size")
+            if size is not None and size != self.image_size:
+                log.info("shards are %dpx, resizing to image_size=%d while loading", size, self.image_size)
+        return found
+
+    def _config(self, train: bool) -> StreamConfig:
+        return StreamConfig(
+            image_size=self.image_size,
+            batch_size=self.batch_size if train else self.eval_batch_size,
+            num_context_views=self.num_context_views,
+            num_target_views=self.num_target_views if train else self.eval_num_target_views,
+            near=self.near,
+            far=self.far,
+            flip_augment=self.flip_augment and train,
+        )
+
+    def _loader(self, dataset: torch.utils.data.IterableDataset) -> DataLoader:
+        return DataLoader(dataset, batch_size=None, num_workers=self.num_workers,
+                          persistent_workers=self.num_workers > 0)  # fmt: skip
+
+    def train_dataset(self) -> TrainStream:
+        return TrainStream(self.shards("train"), self._config(True), self.rank, self.world_size,
+                           self._counters["train"], self._step, self.curriculum, self.train_batches_per_epoch,
+                           seed=self.seed, shuffle_buffer=self.shuffle_buffer)  # fmt: skip
+
+    def eval_dataset(self, split: str = "test") -> EvalStream:
+        counters = self._counters["test" if split == "test" else "val"]
+        return EvalStream(self.shards("test"), self._config(False), self.rank, self.world_size, counters)
+
+    def train_dataloader(self) -> DataLoader:
+        if self.trainer is not None:
+            self.set_global_step(max(self.global_step, self.trainer.global_step))
+        return self._loader(self.train_dataset())
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self.eval_dataset("val"))
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader(self.eval_dataset("test"))

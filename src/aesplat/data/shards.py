@@ -1,0 +1,418 @@
+"""Chunk -> WebDataset shard conversion (SPEC sections 6 and 8).
+
+One source chunk becomes one tar shard per split, written to a temporary name and renamed when complete, with
+a sidecar ``*.json`` (counts, skips, SHA-256). A rerun skips every shard whose sidecar matches its tar, so an
+interrupted conversion resumes. ``manifest.json`` gathers the sidecars.
+
+Sample layout (V = context views first, then targets)::
+
+    KEY.ctx0.jpg ... KEY.tgt0.jpg ...   square JPEGs, centre-cropped then resized
+    KEY.extrinsics.npy   float32 [V, 4, 4] camera-to-world in the source scene's world frame
+    KEY.intrinsics.npy   float32 [V, 3, 3] normalised, for the cropped image
+    KEY.meta.json        {"scene", "dataset", "context", "target", "gap", "overlap"}
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import tarfile
+from collections import Counter
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from .chunks import jpeg_bytes, list_chunks, load_chunk, row_to_cameras
+
+MANIFEST_VERSION = 1
+
+
+@dataclass(frozen=True)
+class ConvertConfig:
+    """Options of the conversion (the ``to_shards.py`` flags).
+
+    size: output side in pixels; min_gap / max_gap: context-gap range of training samples (frames);
+    samples_per_scene: training samples per scene; train_targets: targets per training sample (drawn strictly
+    between the context frames); max_fov_deg: skip scenes with a wider horizontal or vertical FOV;
+    min_baseline: skip scenes whose camera centres span less (and training pairs closer) than this;
+    expect_shape: (H, W) every source image must have, or None to accept any consistent shape.
+    """
+
+    size: int = 256
+    min_gap: int = 25
+    max_gap: int = 90
+    samples_per_scene: int = 8
+    train_targets: int = 3
+    max_fov_deg: float = 100.0
+    min_baseline: float = 1e-3
+    expect_shape: tuple[int, int] | None = None
+    jpeg_quality: int = 95
+    seed: int = 0
+    dataset: str = "unknown"
+
+    def __post_init__(self) -> None:
+        if self.size < 1:
+            raise ValueError(f"size must be a positive number of pixels, got {self.size}")
+        if not 1 <= self.min_gap <= self.max_gap:
+            raise ValueError(f"need 1 <= min_gap <= max_gap, got {self.min_gap}, {self.max_gap}")
+        if self.samples_per_scene < 1 or self.train_targets < 1:
+            raise ValueError("samples_per_scene and train_targets must be at least 1")
+
+
+def safe_key(text: str) -> str:
+    """A WebDataset key: no dots (they separate the extension) and no path separators."""
+    return re.sub(r"[^A-Za-z0-9_\-]", "_", text)
+
+
+# ----------------------------------------------------------------------------------------------- images
+
+
+def crop_resize(jpeg: bytes, size: int, intrinsics: np.ndarray) -> tuple[Image.Image, np.ndarray]:
+    """Centre-crop a JPEG to a square of its shorter side (integer offset), then resize to ``size``.
+
+    intrinsics [3, 3] normalised for the full image -> normalised for the output. Resizing maps the crop's
+    extent onto the output's, so normalised coordinates are unchanged by it; only the crop moves them.
+    """
+    image = Image.open(io.BytesIO(jpeg)).convert("RGB")
+    w, h = image.size
+    side = min(w, h)
+    left, top = (w - side) // 2, (h - side) // 2
+    image = image.crop((left, top, left + side, top + side)).resize((size, size), Image.Resampling.BICUBIC)
+    k = intrinsics.astype(np.float64).copy()
+    k[0, 0], k[0, 2] = k[0, 0] * w / side, (k[0, 2] * w - left) / side
+    k[1, 1], k[1, 2] = k[1, 1] * h / side, (k[1, 2] * h - top) / side
+    return image, k
+
+
+def _encode(image: Image.Image, quality: int) -> bytes:
+    buf = io.BytesIO()
+    image.save(buf, format="JPEG", quality=quality)
+    return buf.getvalue()
+
+
+def _npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array)
+    return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------------------------- samples
+
+
+def validate_scene(scene: dict[str, Any], cfg: ConvertConfig) -> str | None:
+    """The reason to skip a scene (``"missing_field"``, ``"too_few_frames"``, ``"bad_camera"``,
+    ``"corrupt_image"``, ``"wrong_shape"``, ``"fov_too_wide"``, ``"degenerate_baseline"``) or None."""
+    if not all(k in scene for k in ("key", "cameras", "images")):
+        return "missing_field"
+    cams = np.asarray(scene["cameras"], dtype=np.float64)
+    if cams.ndim != 2 or cams.shape[1] != 18 or cams.shape[0] != len(scene["images"]):
+        return "bad_camera"
+    if cams.shape[0] < 3:
+        return "too_few_frames"
+    if not np.isfinite(cams).all() or (cams[:, :2] <= 0).any():
+        return "bad_camera"
+    shapes = set()
+    for image in scene["images"]:  # header reads only: cheap
+        try:
+            with Image.open(io.BytesIO(jpeg_bytes(image))) as im:
+                shapes.add((im.height, im.width))
+        except Exception:  # noqa: BLE001 - any unreadable header means a corrupt image
+            return "corrupt_image"
+    if len(shapes) != 1 or (cfg.expect_shape is not None and shapes != {tuple(cfg.expect_shape)}):
+        return "wrong_shape"
+    fov = 2.0 * np.degrees(np.arctan(0.5 / cams[:, :2]))
+    if (fov > cfg.max_fov_deg).any():
+        return "fov_too_wide"
+    c2w, _ = row_to_cameras(cams)
+    centres = c2w[:, :3, 3]
+    if np.linalg.norm(centres.max(0) - centres.min(0)) < cfg.min_baseline:
+        return "degenerate_baseline"
+    return None
+
+
+def training_views(
+    num_frames: int, cfg: ConvertConfig, rng: np.random.Generator
+) -> list[tuple[list[int], list[int]]]:
+    """Context / target frame ids of the training samples of one scene.
+
+    Gaps are stratified over [min_gap, max_gap] (clipped to the scene's length) so every scene covers the
+    whole curriculum range; the first sample always uses the smallest gap. Targets lie strictly between.
+    """
+    hi = min(cfg.max_gap, num_frames - 1)
+    lo = min(cfg.min_gap, hi)
+    n = cfg.samples_per_scene
+    edges = np.linspace(lo, hi + 1, n + 1)
+    views = []
+    for i in range(n):
+        gap = lo if i == 0 else int(np.clip(np.floor(rng.uniform(edges[i], edges[i + 1])), lo, hi))
+        if gap < 2:
+            continue
+        c0 = int(rng.integers(0, num_frames - gap))
+        between = np.arange(c0 + 1, c0 + gap)
+        targets = sorted(
+            int(t) for t in rng.choice(between, size=min(cfg.train_targets, len(between)), replace=False)
+        )
+        views.append(([c0, c0 + gap], targets))
+    return views
+
+
+def make_sample(scene: dict[str, Any], context: list[int], target: list[int], overlap: float | None,
+                cfg: ConvertConfig) -> dict[str, bytes]:  # fmt: skip
+    """One shard sample (extension -> bytes) from a source scene and its frame ids."""
+    c2w, k = row_to_cameras(scene["cameras"])
+    frames = list(context) + list(target)
+    names = [f"ctx{i}.jpg" for i in range(len(context))] + [f"tgt{i}.jpg" for i in range(len(target))]
+    sample: dict[str, bytes] = {}
+    intrinsics = []
+    for name, f in zip(names, frames):
+        image, k_crop = crop_resize(jpeg_bytes(scene["images"][f]), cfg.size, k[f])
+        sample[name] = _encode(image, cfg.jpeg_quality)
+        intrinsics.append(k_crop)
+    meta = {
+        "scene": str(scene["key"]),
+        "dataset": cfg.dataset,
+        "context": [int(f) for f in context],
+        "target": [int(f) for f in target],
+        "gap": int(context[-1] - context[0]),
+        "overlap": None if overlap is None or not math.isfinite(overlap) else float(overlap),
+    }
+    sample["extrinsics.npy"] = _npy(c2w[frames].astype(np.float32))
+    sample["intrinsics.npy"] = _npy(np.stack(intrinsics).astype(np.float32))
+    sample["meta.json"] = json.dumps(meta).encode()
+    return sample
+
+
+def write_tar(path: Path, samples: list[tuple[str, dict[str, bytes]]]) -> None:
+    """Write samples [(key, {ext: bytes})] as a WebDataset tar (fixed mtime: reproducible checksums)."""
+    with tarfile.open(path, "w", format=tarfile.USTAR_FORMAT) as tar:
+        for key, sample in samples:
+            for ext, data in sample.items():
+                info = tarfile.TarInfo(f"{key}.{ext}")
+                info.size, info.mtime, info.mode = len(data), 0, 0o644
+                tar.addfile(info, io.BytesIO(data))
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class _Job:
+    split: str
+    chunk: str
+    shard: str
+    cfg: ConvertConfig
+    eval_index: dict[str, Any] | None  # test split only; None = sample like training but deterministically
+
+
+def convert_chunk(job: _Job) -> dict[str, Any]:
+    """Convert one chunk into one shard; returns its record (also written as the shard's sidecar JSON)."""
+    shard = Path(job.shard)
+    skips: Counter[str] = Counter()
+    samples: list[tuple[str, dict[str, bytes]]] = []
+    scenes_seen = 0
+    used_keys: list[str] = []
+    try:
+        chunk = load_chunk(job.chunk)
+    except ValueError:
+        chunk, skips["corrupt_chunk"] = [], 1
+    for scene in chunk:
+        scenes_seen += 1
+        reason = validate_scene(scene, job.cfg) if isinstance(scene, dict) else "missing_field"
+        key = str(scene.get("key", "")) if isinstance(scene, dict) else ""
+        if reason is None and job.eval_index is not None:
+            entry = job.eval_index.get(key)
+            if entry is None:
+                reason = "not_in_evaluation_index"
+            elif max(entry["context"] + entry["target"]) >= len(scene["images"]):
+                reason = "evaluation_frames_out_of_range"
+        if reason is not None:
+            skips[reason] += 1
+            continue
+        try:
+            if job.eval_index is not None:
+                entry = job.eval_index[key]
+                views = [(list(entry["context"]), list(entry["target"]))]
+                overlaps = [entry.get("overlap")]
+            else:
+                # Seeded per scene key: a resumed or re-run conversion draws the same samples.
+                seed = int.from_bytes(hashlib.sha256(f"{job.cfg.seed}/{key}".encode()).digest()[:8], "little")
+                views = training_views(len(scene["images"]), job.cfg, np.random.default_rng(seed))
+                c2w, _ = row_to_cameras(scene["cameras"])
+                kept = [v for v in views if np.linalg.norm(c2w[v[0][1], :3, 3] - c2w[v[0][0], :3, 3])
+                        >= job.cfg.min_baseline]  # fmt: skip
+                skips["degenerate_pair"] += len(views) - len(kept)
+                views, overlaps = kept, [None] * len(kept)
+            made = []
+            for i, ((ctx, tgt), ov) in enumerate(zip(views, overlaps)):
+                name = safe_key(key) if job.eval_index is not None else f"{safe_key(key)}_{i:03d}"
+                made.append((name, make_sample(scene, ctx, tgt, ov, job.cfg)))
+            samples.extend(made)
+            used_keys.append(key)
+        except Exception:  # noqa: BLE001 - a broken frame skips its scene, never the run
+            skips["corrupt_image"] += 1
+    tmp = shard.with_suffix(".tar.tmp")
+    write_tar(tmp, samples)
+    os.replace(tmp, shard)
+    record = {
+        "shard": shard.name,
+        "chunk": Path(job.chunk).name,
+        "samples": len(samples),
+        "scenes": len(used_keys),
+        "scenes_seen": scenes_seen,
+        "scene_keys": used_keys,
+        "skips": dict(sorted((k, v) for k, v in skips.items() if v)),
+        "sha256": sha256(shard),
+        "bytes": shard.stat().st_size,
+        "config": asdict(job.cfg),
+    }
+    shard.with_suffix(".json").write_text(json.dumps(record, indent=1))
+    return record
+
+
+def _done(shard: Path, cfg: ConvertConfig) -> dict[str, Any] | None:
+    """The sidecar record if ``shard`` was completed with the same options and its checksum still matches."""
+    sidecar = shard.with_suffix(".json")
+    if not (shard.exists() and sidecar.exists()):
+        return None
+    try:
+        record = json.loads(sidecar.read_text())
+    except json.JSONDecodeError:
+        return None
+    if record.get("config") != json.loads(json.dumps(asdict(cfg))) or record.get("sha256") != sha256(shard):
+        return None
+    return record
+
+
+def convert_dataset(
+    src: str | Path,
+    out: str | Path,
+    size: int = 256,
+    eval_index: str | Path | None = None,
+    workers: int = 1,
+    min_gap: int | None = None,
+    max_gap: int | None = None,
+    samples_per_scene: int = 8,
+    train_targets: int = 3,
+    max_fov_deg: float = 100.0,
+    min_baseline: float = 1e-3,
+    expect_shape: tuple[int, int] | None = None,
+    jpeg_quality: int = 95,
+    seed: int = 0,
+    dataset: str | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Convert ``src/{train,test}`` chunk folders into ``out/{train,test}/*.tar`` and ``out/manifest.json``.
+
+    eval_index: the evaluation index JSON for the test split (default ``src/evaluation_index.json`` if it
+    exists; without one the test split is sampled like training, deterministically, one sample per scene).
+    min_gap / max_gap default to ``src/dataset.json``'s ``gap_range`` if present, else the paper's 25 / 90.
+    Already completed shards (sidecar checksum matches) are kept: an interrupted run resumes.
+    Returns the manifest.
+    """
+    src, out = Path(src), Path(out)
+    splits = [s for s in ("train", "test") if (src / s).is_dir()]
+    if not splits:
+        raise FileNotFoundError(f"{src} holds no train/ or test/ folder of *.torch chunks (pixelSplat layout)")
+    info = json.loads((src / "dataset.json").read_text()) if (src / "dataset.json").exists() else {}
+    gaps = info.get("gap_range", [25, 90])
+    base = ConvertConfig(
+        size=size,
+        min_gap=min_gap if min_gap is not None else int(gaps[0]),
+        max_gap=max_gap if max_gap is not None else int(gaps[1]),
+        samples_per_scene=samples_per_scene,
+        train_targets=train_targets,
+        max_fov_deg=max_fov_deg,
+        min_baseline=min_baseline,
+        expect_shape=tuple(expect_shape) if expect_shape is not None else None,
+        jpeg_quality=jpeg_quality,
+        seed=seed,
+        dataset=dataset or info.get("dataset", src.name),
+    )
+    if eval_index is None and (src / "evaluation_index.json").exists():
+        eval_index = src / "evaluation_index.json"
+    index = json.loads(Path(eval_index).read_text()) if eval_index is not None else None
+
+    jobs, records = [], []
+    for split in splits:
+        (out / split).mkdir(parents=True, exist_ok=True)
+        for chunk in list_chunks(src / split):
+            shard = out / split / f"{split}-{chunk.stem}.tar"
+            done = _done(shard, base)
+            if done is not None:
+                records.append((split, done))
+                continue
+            ev = index if split == "test" else None
+            if split == "test" and ev is None:
+                ev_cfg = ConvertConfig(**{**asdict(base), "samples_per_scene": 1})
+                jobs.append((split, _Job(split, str(chunk), str(shard), ev_cfg, None)))
+            else:
+                jobs.append((split, _Job(split, str(chunk), str(shard), base, ev)))
+
+    from tqdm import tqdm
+
+    with tqdm(total=len(jobs), desc="shards", disable=not progress) as bar:
+        if workers > 1 and len(jobs) > 1:
+            with ProcessPoolExecutor(max_workers=workers) as pool:
+                for (split, _), record in zip(jobs, pool.map(convert_chunk, [j for _, j in jobs])):
+                    records.append((split, record))
+                    bar.update()
+        else:
+            for split, job in jobs:
+                records.append((split, convert_chunk(job)))
+                bar.update()
+
+    manifest: dict[str, Any] = {
+        "version": MANIFEST_VERSION,
+        "source": str(src),
+        "config": asdict(base),
+        "evaluation_index": str(eval_index) if eval_index else None,
+        "splits": {},
+    }
+    for split in splits:
+        recs = sorted((r for s, r in records if s == split), key=lambda r: r["shard"])
+        skips: Counter[str] = Counter()
+        for r in recs:
+            skips.update(r["skips"])
+        entry = {
+            "samples": sum(r["samples"] for r in recs),
+            "scenes": sum(r["scenes"] for r in recs),
+            "scenes_seen": sum(r["scenes_seen"] for r in recs),
+            "skips": dict(sorted(skips.items())),
+            "shards": [
+                {k: r[k] for k in ("shard", "chunk", "samples", "scenes", "sha256", "bytes")} for r in recs
+            ],
+        }
+        if split == "test" and index is not None:
+            wanted = {k for k, v in index.items() if v is not None}
+            found = {k for r in recs for k in r["scene_keys"]}
+            entry["evaluation_index_entries"] = len(wanted)
+            entry["evaluation_index_missing"] = len(wanted - found)
+        manifest["splits"][split] = entry
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return manifest
+
+
+def verify_shards(out: str | Path) -> list[str]:
+    """Shards whose SHA-256 no longer matches the manifest (or that are missing), as relative paths."""
+    out = Path(out)
+    manifest = json.loads((out / "manifest.json").read_text())
+    bad = []
+    for split, entry in manifest["splits"].items():
+        for shard in entry["shards"]:
+            path = out / split / shard["shard"]
+            if not path.exists() or sha256(path) != shard["sha256"]:
+                bad.append(f"{split}/{shard['shard']}")
+    return bad

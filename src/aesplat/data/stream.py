@@ -1,0 +1,349 @@
+"""Streaming shards into ``BatchedExample`` batches, split explicitly by rank and worker (SPEC section 6).
+
+- Training: every (rank, worker) resamples its shards forever through a shuffle buffer and yields exactly its
+  share of ``batches_per_rank`` batches, so every rank sees the same number of batches (no DDP hang).
+  Samples whose context gap the curriculum does not allow at the current global step (read from shared
+  memory, so every worker honours it) are passed over.
+- Evaluation: deterministic order, every sample exactly once across all ranks and workers.
+- A corrupt sample or shard is skipped, counted in a shared counter table and logged, never fatal.
+
+Workers batch samples themselves (the DataLoader runs with ``batch_size=None``) so batch counts are exact.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import tarfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from torch.utils.data import IterableDataset, get_worker_info
+from torchvision.io import decode_jpeg
+
+from aesplat.types import BatchedExample, BatchedViews
+
+from .curriculum import GapCurriculum
+
+log = logging.getLogger("aesplat.data")
+
+COUNTERS = ("corrupt_samples", "corrupt_shards", "curriculum_skipped")
+REFLECT = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+
+
+def new_counters(num_workers: int) -> Tensor:
+    """Shared-memory counter table [workers + 1, len(COUNTERS)]: one row per worker (row 0 = main process),
+    so workers never write the same cell."""
+    return torch.zeros(num_workers + 1, len(COUNTERS), dtype=torch.int64).share_memory_()
+
+
+def read_tar(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
+    """Stream the samples of a WebDataset tar: (key, {extension: bytes}), members grouped by key.
+
+    Raises ``tarfile.ReadError`` / ``EOFError`` / ``OSError`` on a truncated or corrupt tar (the incomplete
+    sample at the point of failure is never yielded).
+    """
+    key, sample = None, {}
+    with tarfile.open(path, "r|") as tar:
+        for member in tar:
+            if not member.isfile():
+                continue
+            name = member.name.rsplit("/", 1)[-1]
+            k, _, ext = name.partition(".")
+            f = tar.extractfile(member)
+            data = f.read() if f is not None else b""
+            if len(data) != member.size:
+                raise tarfile.ReadError(f"member {member.name} truncated")
+            if k != key:
+                if key is not None:
+                    yield key, sample
+                key, sample = k, {}
+            sample[ext] = data
+    if key is not None:
+        yield key, sample
+
+
+def flip_views(images: Tensor, extrinsics: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Mirror views horizontally and the world with them: images [..., 3, H, W], camera-to-world [..., 4, 4],
+    normalised intrinsics [..., 3, 3]. Pixel u maps to W - u; a world point X maps to diag(-1, 1, 1) X."""
+    intrinsics = intrinsics.clone()
+    intrinsics[..., 0, 2] = 1.0 - intrinsics[..., 0, 2]
+    reflect = REFLECT.to(extrinsics)
+    return images.flip(-1), reflect @ extrinsics @ reflect, intrinsics
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """What a stream needs to turn samples into batches (built by the DataModule)."""
+
+    image_size: int
+    batch_size: int
+    num_context_views: int = 2
+    num_target_views: int | None = 1  # None: every target of the sample (evaluation)
+    near: float = 1.0
+    far: float = 100.0
+    flip_augment: bool = False
+
+
+def decode_sample(key: str, raw: dict[str, bytes], cfg: StreamConfig, rng: np.random.Generator | None) -> dict:
+    """Raw sample -> tensors. ``rng`` picks the targets (a sorted random subset) and the flip; None means
+    evaluation: every target (or the first ``num_target_views``), no flip. ``ValueError`` on a bad sample."""
+    meta = json.loads(raw["meta.json"])
+    ctx_names = sorted(
+        (n for n in raw if n.startswith("ctx") and n.endswith(".jpg")), key=lambda n: int(n[3:-4])
+    )
+    tgt_names = sorted(
+        (n for n in raw if n.startswith("tgt") and n.endswith(".jpg")), key=lambda n: int(n[3:-4])
+    )
+    if len(ctx_names) != cfg.num_context_views:
+        raise ValueError(
+            f"sample has {len(ctx_names)} context views, the data module wants {cfg.num_context_views}"
+        )
+    extrinsics = torch.from_numpy(np.load(io.BytesIO(raw["extrinsics.npy"]))).float()
+    intrinsics = torch.from_numpy(np.load(io.BytesIO(raw["intrinsics.npy"]))).float()
+    v = len(ctx_names) + len(tgt_names)
+    if extrinsics.shape != (v, 4, 4) or intrinsics.shape != (v, 3, 3):
+        raise ValueError(
+            f"camera arrays {tuple(extrinsics.shape)}, {tuple(intrinsics.shape)} do not match {v} views"
+        )
+    want = len(tgt_names) if cfg.num_target_views is None else cfg.num_target_views
+    if len(tgt_names) < want:
+        raise ValueError(f"sample has {len(tgt_names)} targets, the data module wants {want}")
+    if rng is None:
+        picked = list(range(want))
+    else:
+        picked = sorted(rng.choice(len(tgt_names), size=want, replace=False).tolist())
+    views = list(range(len(ctx_names))) + [len(ctx_names) + i for i in picked]
+    names = ctx_names + [tgt_names[i] for i in picked]
+    images = []
+    for name in names:
+        img = decode_jpeg(torch.frombuffer(bytearray(raw[name]), dtype=torch.uint8))  # [3, H, W] uint8
+        if img.shape[0] == 1:
+            img = img.expand(3, -1, -1)
+        if img.shape[1:] != (cfg.image_size, cfg.image_size):
+            if img.shape[1] != img.shape[2]:
+                raise ValueError(f"{name} is {tuple(img.shape[1:])}, shard images must be square")
+            # Square to square maps the full extent onto the full extent: normalised intrinsics are unchanged.
+            img = F.interpolate(img[None].float(), size=(cfg.image_size,) * 2, mode="bilinear", antialias=True,
+                                align_corners=False)[0].round().clamp(0, 255).to(torch.uint8)  # fmt: skip
+        images.append(img)
+    images_t = torch.stack(images)  # [V, 3, H, W]
+    extrinsics, intrinsics = extrinsics[views], intrinsics[views]
+    frames = torch.tensor(list(meta["context"]) + [meta["target"][i] for i in picked], dtype=torch.int64)
+    if not (torch.isfinite(extrinsics).all() and torch.isfinite(intrinsics).all()):
+        raise ValueError("non-finite cameras")
+    if rng is not None and cfg.flip_augment and rng.uniform() < 0.5:
+        images_t, extrinsics, intrinsics = flip_views(images_t, extrinsics, intrinsics)
+    overlap = meta.get("overlap")
+    return {
+        "key": key,
+        "images": images_t,
+        "extrinsics": extrinsics,
+        "intrinsics": intrinsics,
+        "index": frames,
+        "scene": str(meta["scene"]),
+        "dataset": str(meta.get("dataset", "")),
+        "gap": int(meta["gap"]),
+        "overlap": float("nan") if overlap is None else float(overlap),
+    }
+
+
+def collate(samples: list[dict], cfg: StreamConfig) -> BatchedExample:
+    """Decoded samples -> ``BatchedExample`` with uint8 images [B, V, 3, H, W]."""
+    nc = cfg.num_context_views
+
+    def views(sl: slice) -> BatchedViews:
+        images = torch.stack([s["images"][sl] for s in samples])
+        b, v = images.shape[:2]
+        return BatchedViews(
+            images=images,
+            extrinsics=torch.stack([s["extrinsics"][sl] for s in samples]),
+            intrinsics=torch.stack([s["intrinsics"][sl] for s in samples]),
+            near=torch.full((b, v), float(cfg.near), dtype=torch.float32),
+            far=torch.full((b, v), float(cfg.far), dtype=torch.float32),
+            index=torch.stack([s["index"][sl] for s in samples]),
+        )
+
+    return BatchedExample(
+        context=views(slice(0, nc)),
+        target=views(slice(nc, None)),
+        scene=[s["scene"] for s in samples],
+        overlap=torch.tensor([s["overlap"] for s in samples], dtype=torch.float32),
+        gap=torch.tensor([s["gap"] for s in samples], dtype=torch.int64),
+        dataset=[s["dataset"] for s in samples],
+    )
+
+
+def _worker() -> tuple[int, int]:
+    info = get_worker_info()
+    return (0, 1) if info is None else (info.id, info.num_workers)
+
+
+class _ShardStream(IterableDataset):
+    """Shared plumbing: shard list, rank, counters and safe reading."""
+
+    def __init__(
+        self, shards: list[str], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor
+    ) -> None:
+        super().__init__()
+        if not shards:
+            raise ValueError("no shards to stream")
+        if not 0 <= rank < world_size:
+            raise ValueError(f"rank {rank} is outside world size {world_size}")
+        self.shards = sorted(str(s) for s in shards)
+        self.cfg = cfg
+        self.rank = rank
+        self.world_size = world_size
+        self.counters = counters
+
+    def _count(self, what: str, n: int = 1) -> None:
+        wid, _ = _worker()
+        row = min(wid + 1 if get_worker_info() is not None else 0, self.counters.shape[0] - 1)
+        self.counters[row, COUNTERS.index(what)] += n
+
+    def _samples(self, shard: str) -> Iterator[tuple[str, dict[str, bytes]]]:
+        try:
+            yield from read_tar(shard)
+        except (tarfile.TarError, EOFError, OSError, ValueError) as e:
+            self._count("corrupt_shards")
+            log.warning("skipping the rest of corrupt shard %s: %s (counted in corrupt_shards)", shard, e)
+
+    def _decode(self, shard: str, key: str, raw: dict, rng: np.random.Generator | None) -> dict | None:
+        try:
+            return decode_sample(key, raw, self.cfg, rng)
+        except Exception as e:  # noqa: BLE001 - one bad sample must never stop a multi-day run
+            self._count("corrupt_samples")
+            log.warning("skipping corrupt sample %s in %s: %s (counted in corrupt_samples)", key, shard, e)
+            return None
+
+
+class TrainStream(_ShardStream):
+    """Infinite resampled training stream cut to ``batches_per_rank`` batches per rank (per epoch).
+
+    step: shared int64 [1] tensor holding the global step (the curriculum reads it on every sample).
+    """
+
+    def __init__(self, shards: list[str], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor,
+                 step: Tensor, curriculum: GapCurriculum, batches_per_rank: int, seed: int = 0,
+                 shuffle_buffer: int = 64) -> None:  # fmt: skip
+        super().__init__(shards, cfg, rank, world_size, counters)
+        if batches_per_rank < 1:
+            raise ValueError(f"train_batches_per_epoch must be >= 1, got {batches_per_rank}")
+        self.step = step
+        self.curriculum = curriculum
+        self.batches_per_rank = batches_per_rank
+        self.seed = seed
+        self.shuffle_buffer = max(1, shuffle_buffer)
+
+    def __len__(self) -> int:
+        return self.batches_per_rank
+
+    def worker_shards(self, worker: int, num_workers: int) -> list[str]:
+        """This rank's shards for one worker. With fewer shards than ranks (or workers) every rank (worker)
+        reads them all; their random streams differ, which is harmless for training."""
+        mine = self.shards[self.rank :: self.world_size] if len(self.shards) >= self.world_size else self.shards
+        return mine[worker::num_workers] if len(mine) >= num_workers else mine
+
+    def _raw_forever(self, shards: list[str], rng: np.random.Generator) -> Iterator[tuple[str, str, dict]]:
+        buffer: list[tuple[str, str, dict]] = []
+        while True:
+            yielded = 0
+            for shard in rng.permutation(shards).tolist():
+                for key, raw in self._samples(shard):
+                    buffer.append((shard, key, raw))
+                    if len(buffer) >= self.shuffle_buffer:
+                        yield buffer.pop(int(rng.integers(len(buffer))))
+                        yielded += 1
+            if yielded == 0 and not buffer:
+                raise RuntimeError(f"training shards {shards} hold no readable samples")
+            while len(buffer) > self.shuffle_buffer // 2:
+                yield buffer.pop(int(rng.integers(len(buffer))))
+
+    def __iter__(self) -> Iterator[BatchedExample]:
+        wid, nw = _worker()
+        todo = self.batches_per_rank // nw + (wid < self.batches_per_rank % nw)
+        shards = self.worker_shards(wid, nw)
+        rng = np.random.default_rng([self.seed, self.rank, wid, int(self.step[0])])
+        raw_stream = self._raw_forever(shards, rng)
+        batch: list[dict] = []
+        rejected_in_a_row, gaps_seen = 0, set()
+        while todo > 0:
+            shard, key, raw = next(raw_stream)
+            try:
+                gap = int(json.loads(raw["meta.json"])["gap"])
+            except Exception:  # noqa: BLE001
+                gap = None  # decode_sample counts it as corrupt
+            step = int(self.step[0])
+            if gap is not None and not self.curriculum.accepts(gap, step):
+                self._count("curriculum_skipped")
+                rejected_in_a_row += 1
+                gaps_seen.add(gap)
+                if rejected_in_a_row > 20_000:
+                    raise RuntimeError(
+                        f"no training sample has a context gap allowed by the curriculum at step {step} "
+                        f"({self.curriculum.allowed(step)}); shard gaps include {sorted(gaps_seen)[:20]}. "
+                        "Convert with a matching --min-gap/--max-gap or change the curriculum ranges."
+                    )
+                continue
+            rejected_in_a_row = 0
+            sample = self._decode(shard, key, raw, rng)
+            if sample is None:
+                continue
+            batch.append(sample)
+            if len(batch) == self.cfg.batch_size:
+                yield collate(batch, self.cfg)
+                batch, todo = [], todo - 1
+
+
+class EvalStream(_ShardStream):
+    """Deterministic, complete evaluation stream: each sample exactly once across ranks x workers.
+
+    With at least as many shards as (ranks x workers) whole shards are dealt out; otherwise every worker
+    reads every shard and keeps the samples whose running index falls to it.
+    """
+
+    def splits(self, worker: int, num_workers: int) -> tuple[list[str], int | None, int]:
+        """(shards to read, modulus or None, residue) for one worker of this rank."""
+        total = self.world_size * num_workers
+        me = self.rank * num_workers + worker
+        if len(self.shards) >= total:
+            return self.shards[me::total], None, me
+        return self.shards, total, me
+
+    def __iter__(self) -> Iterator[BatchedExample]:
+        wid, nw = _worker()
+        shards, modulus, me = self.splits(wid, nw)
+        batch: list[dict] = []
+        i = -1
+        for shard in shards:
+            for key, raw in self._samples(shard):
+                i += 1
+                if modulus is not None and i % modulus != me:
+                    continue
+                sample = self._decode(shard, key, raw, None)
+                if sample is None:
+                    continue
+                batch.append(sample)
+                if len(batch) == self.cfg.batch_size:
+                    yield collate(batch, self.cfg)
+                    batch = []
+        if batch:
+            yield collate(batch, self.cfg)
+
+
+def counter_totals(counters: Tensor) -> dict[str, int]:
+    """Sum a counter table over workers -> {name: count}."""
+    totals = counters.sum(0).tolist()
+    return dict(zip(COUNTERS, (int(t) for t in totals)))
+
+
+def sample_keys(batch: BatchedExample) -> list[tuple[str, tuple[int, ...]]]:
+    """(scene, frame ids) per batch element: identifies samples in tests and logs."""
+    frames = torch.cat([batch.context.index, batch.target.index], dim=1).tolist()
+    return [(s, tuple(f)) for s, f in zip(batch.scene, frames)]
