@@ -1,0 +1,201 @@
+"""The one rasterizer interface (SPEC sections 4 and 8) and the registry of backends.
+
+``render`` checks inputs, picks the working precision (float32, or float64 when an input is float64; autocast
+is off inside), resolves the background and the SH degree actually in use, and hands over to a backend:
+
+    BACKENDS = {"torch": render_torch, "gsplat": render_gsplat}
+    get_backend("auto")  # gsplat when CUDA is available and gsplat imports, else torch
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+from aesplat.geometry import sh_degree_from_coeffs
+from aesplat.types import Gaussians, RenderOutput
+
+from .projection import active_sh_degree
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Options every backend understands; pass them to ``render`` as keyword arguments.
+
+    tile_size     screen tile side in pixels (torch backend: 8 or 16 are good; gsplat: 16)
+    chunk         Gaussians per compositing step of each tile list (torch backend)
+    max_elements  bound on tiles x pixels x chunk per step: the torch backend's memory budget
+                  (about 60 bytes per element in the backward)
+    near, far     depth cull planes (camera z)
+    eps2d         low-pass added to the 2D covariance
+    sh_tol        bands whose coefficients are all within this of zero are skipped
+    compile       torch backend: run the per-chunk maths through ``torch.compile`` (slow first call)
+    """
+
+    tile_size: int = 16
+    chunk: int = 32
+    max_elements: int = 1 << 22
+    near: float = 0.01
+    far: float = 1e10
+    eps2d: float = 0.3
+    sh_tol: float = 0.0
+    compile: bool = False
+
+    def __post_init__(self) -> None:
+        if self.tile_size < 1 or self.chunk < 1 or self.max_elements < 1:
+            raise ValueError(f"tile_size, chunk and max_elements must be positive: {self}")
+        if not 0.0 < self.near < self.far:
+            raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
+
+
+@dataclass(frozen=True)
+class RenderStats:
+    """What a render call did: the "effects on demand" accounting.
+
+    Counts are over (camera, Gaussian) pairs, in the order the culls run (a pair is counted once).
+    """
+
+    backend: str
+    pairs: int  # B * V * N
+    culled_transparent: int  # opacity < 1/255
+    culled_depth: int  # behind the camera, at its centre, on or before the near plane, beyond far
+    culled_footprint: int  # degenerate 2D covariance, or bounding box off the image
+    visible: int  # pairs that reached sorting and compositing
+    intersections: int  # (tile, Gaussian) pairs composited (torch backend; -1 where unknown)
+    sh_degree_requested: int
+    sh_degree_active: int  # bands actually evaluated (0: no SH basis at all)
+
+
+Backend = Callable[..., tuple[RenderOutput, RenderStats]]
+
+
+def _render_gsplat_lazy(*args, **kwargs) -> tuple[RenderOutput, RenderStats]:
+    from .gsplat_backend import render_gsplat  # imports gsplat only when asked for
+
+    return render_gsplat(*args, **kwargs)
+
+
+def _render_torch(*args, **kwargs) -> tuple[RenderOutput, RenderStats]:
+    from .torch_backend import render_torch
+
+    return render_torch(*args, **kwargs)
+
+
+BACKENDS: dict[str, Backend] = {"torch": _render_torch, "gsplat": _render_gsplat_lazy}
+
+
+def gsplat_available() -> bool:
+    """True when CUDA is available and the gsplat package can be imported."""
+    return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
+
+
+def get_backend(name: str = "auto") -> tuple[str, Backend]:
+    """Resolve a backend name ("torch", "gsplat" or "auto") to (resolved name, function)."""
+    if name == "auto":
+        name = "gsplat" if gsplat_available() else "torch"
+    if name not in BACKENDS:
+        raise ValueError(f"unknown render backend {name!r}; choose one of {sorted(BACKENDS) + ['auto']}")
+    return name, BACKENDS[name]
+
+
+def _check_cameras(
+    gaussians: Gaussians, extrinsics: Tensor, intrinsics: Tensor, height: int, width: int
+) -> None:
+    b = gaussians.batch_size
+    if extrinsics.ndim != 4 or extrinsics.shape[0] != b or extrinsics.shape[-2:] != (4, 4):
+        raise ValueError(f"extrinsics must be [B={b}, V, 4, 4] camera-to-world, got {tuple(extrinsics.shape)}")
+    if intrinsics.shape != (*extrinsics.shape[:2], 3, 3):
+        raise ValueError(
+            f"intrinsics must be [B, V, 3, 3] = {(*extrinsics.shape[:2], 3, 3)} (normalised), "
+            f"got {tuple(intrinsics.shape)}"
+        )
+    if not (isinstance(height, int) and isinstance(width, int) and height > 0 and width > 0):
+        raise ValueError(f"height and width must be positive ints, got {height!r} x {width!r}")
+
+
+def _background(background: Tensor | None, b: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """None (black), [3] or [B, 3] -> [B, 3]."""
+    if background is None:
+        return torch.zeros(b, 3, dtype=dtype, device=device)
+    background = torch.as_tensor(background, device=device).to(dtype)
+    if background.shape == (3,):
+        return background.expand(b, 3)
+    if background.shape == (b, 3):
+        return background
+    raise ValueError(f"background must be None, [3] or [B={b}, 3], got {tuple(background.shape)}")
+
+
+def render_with_stats(
+    gaussians: Gaussians,
+    extrinsics: Tensor,  # [B, V, 4, 4] camera-to-world
+    intrinsics: Tensor,  # [B, V, 3, 3] normalised
+    height: int,
+    width: int,
+    *,
+    background: Tensor | None = None,  # [3] or [B, 3]; None = black
+    sh_degree: int | None = None,
+    backend: str = "auto",
+    **options,
+) -> tuple[RenderOutput, RenderStats]:
+    """``render`` that also returns what was culled and which SH degree was evaluated."""
+    known = {f.name for f in fields(RenderSettings)}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise TypeError(f"unknown render option(s) {unknown}; known options: {sorted(known)}")
+    settings = RenderSettings(**options)
+    _check_cameras(gaussians, extrinsics, intrinsics, height, width)
+    name, fn = get_backend(backend)
+
+    available = sh_degree_from_coeffs(gaussians.sh.shape[2])
+    requested = available if sh_degree is None else int(sh_degree)
+    if not 0 <= requested <= available:
+        raise ValueError(f"sh_degree={sh_degree} but the Gaussians carry SH up to degree {available}")
+    # Skipping silent bands is exact for the image; their gradient is not zero, so keep them when needed.
+    needs_grad = torch.is_grad_enabled() and gaussians.sh.requires_grad
+    active = requested if needs_grad else active_sh_degree(gaussians.sh.detach(), requested, settings.sh_tol)
+
+    tensors = [gaussians.means, extrinsics, intrinsics] + ([] if background is None else [background])
+    dtype = torch.float64 if any(torch.as_tensor(t).dtype == torch.float64 for t in tensors) else torch.float32
+    device = gaussians.means.device
+    with torch.autocast(device_type=device.type, enabled=False):
+        g = gaussians.to(dtype=dtype)
+        bg = _background(background, g.batch_size, dtype, device)
+        out, stats = fn(g, extrinsics.to(dtype), intrinsics.to(dtype), height, width, bg, active, settings)
+    return out, _with_degrees(stats, name, requested, active)
+
+
+def _with_degrees(stats: RenderStats, name: str, requested: int, active: int) -> RenderStats:
+    values = {f.name: getattr(stats, f.name) for f in fields(stats)}
+    values.update(backend=name, sh_degree_requested=requested, sh_degree_active=active)
+    return RenderStats(**values)
+
+
+def render(
+    gaussians: Gaussians,
+    extrinsics: Tensor,  # [B, V, 4, 4] camera-to-world
+    intrinsics: Tensor,  # [B, V, 3, 3] normalised
+    height: int,
+    width: int,
+    *,
+    background: Tensor | None = None,  # [3] or [B, 3]; None = black
+    sh_degree: int | None = None,
+    backend: str = "auto",
+    **options,
+) -> RenderOutput:
+    """Render Gaussians into V cameras per batch element (gsplat "classic" semantics, SPEC section 4).
+
+    Returns colour [B, V, 3, H, W] over the background, expected z-depth [B, V, 1, H, W] (0 where nothing
+    is seen) and alpha [B, V, 1, H, W]. Differentiable with respect to the Gaussians, both camera matrices
+    and the background. Computes in float32 (float64 when given float64), whatever the autocast state.
+    ``sh_degree`` caps the SH bands used (default: all the Gaussians carry). ``options`` are the fields of
+    ``RenderSettings`` (tile_size, chunk, max_elements, near, far, eps2d, sh_tol, compile).
+    """
+    out, _ = render_with_stats(
+        gaussians, extrinsics, intrinsics, height, width,
+        background=background, sh_degree=sh_degree, backend=backend, **options,
+    )  # fmt: skip
+    return out

@@ -1,0 +1,220 @@
+"""EWA projection of 3D Gaussians into pinhole cameras, with gsplat's "classic" culling rules.
+
+Pure torch and differentiable (plain autograd) with respect to the Gaussians and both camera matrices.
+Cheap culls run first so the expensive work (covariances, Jacobians, SH) only sees survivors:
+
+1. transparent: opacity < 1/255 (can never pass the alpha threshold);
+2. depth: z <= near or z >= far (behind the camera, at its centre, on the near plane);
+3. footprint: non-finite or degenerate 2D covariance, zero radius, or a bounding box off the image.
+
+Every division is guarded by a ``where`` *before* it, so no culled or degenerate value can turn into a
+NaN in the backward pass.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from aesplat.geometry import covariance_from_scale_rot, eval_sh, invert_pose, num_sh_coeffs
+from aesplat.types import Gaussians
+
+ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
+MAX_EXTENT = 3.33  # bounding-box half-size in standard deviations (tightened by opacity below)
+
+
+@dataclass(frozen=True)
+class Projected:
+    """The Gaussians that survived culling, one row per (camera, Gaussian) pair; M rows in total.
+
+    camera      [M]     flat camera index b * V + v (int64)
+    gaussian    [M]     flat Gaussian index b * N + n (int64)
+    means2d     [M, 2]  pixel coordinates of the centre (pixel centres at +0.5)
+    conics      [M, 3]  inverse 2D covariance (a, b, c) of [[a, b], [b, c]], low-pass included
+    radii       [M, 2]  bounding-box half-sizes in pixels (integers stored as float)
+    depths      [M]     camera-frame z
+    opacities   [M]
+    colors      [M, 3]  SH evaluated towards the camera, max(. + 0.5, 0)
+    """
+
+    camera: Tensor
+    gaussian: Tensor
+    means2d: Tensor
+    conics: Tensor
+    radii: Tensor
+    depths: Tensor
+    opacities: Tensor
+    colors: Tensor
+
+
+@dataclass(frozen=True)
+class CullCounts:
+    """How many (camera, Gaussian) pairs each cull removed, in the order they run."""
+
+    total: int
+    transparent: int
+    depth: int
+    footprint: int
+
+    @property
+    def visible(self) -> int:
+        return self.total - self.transparent - self.depth - self.footprint
+
+
+def _ewa(
+    means: Tensor,  # [B * N, 3]
+    covariance: Callable[[Tensor], Tensor],  # flat Gaussian indices [M] -> world covariances [M, 3, 3]
+    cameras: tuple[Tensor, Tensor, Tensor],  # rotations [C, 3, 3], translations [C, 3], intrinsics [C, 3, 3]
+    cam: Tensor,  # [M] camera of each pair
+    gid: Tensor,  # [M] flat Gaussian index of each pair
+    height: int,
+    width: int,
+    eps2d: float,
+) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor], Tensor]:
+    """Pixel means [M, 2], low-passed 2D covariance entries (a, b, c) [M] each, and camera z [M].
+
+    Callers guarantee z > near > 0 for every pair.
+    """
+    rot_all, trans_all, k_all = cameras
+    r = rot_all[cam]  # [M, 3, 3]
+    mean_c = (r @ means[gid][:, :, None])[..., 0] + trans_all[cam]  # [M, 3]
+    cov_w = covariance(gid)
+    cov_c = r @ cov_w @ r.transpose(-1, -2)  # [M, 3, 3]
+    k = k_all[cam]
+    fx, fy = k[:, 0, 0] * width, k[:, 1, 1] * height
+    cx, cy = k[:, 0, 2] * width, k[:, 1, 2] * height
+    x, y, z = mean_c.unbind(-1)
+    rz = 1.0 / z
+    # gsplat's Jacobian clamp: the tangent point stays within [-0.15, 1.15] of the image in pixels.
+    lo_x, hi_x = -(cx + 0.15 * width) / fx, (1.15 * width - cx) / fx
+    lo_y, hi_y = -(cy + 0.15 * height) / fy, (1.15 * height - cy) / fy
+    tx = z * torch.minimum(hi_x, torch.maximum(lo_x, x * rz))
+    ty = z * torch.minimum(hi_y, torch.maximum(lo_y, y * rz))
+    zero = torch.zeros_like(z)
+    jac = torch.stack([fx * rz, zero, -fx * tx * rz * rz, zero, fy * rz, -fy * ty * rz * rz], dim=-1)
+    jac = jac.reshape(-1, 2, 3)  # [M, 2, 3]
+    cov2d = jac @ cov_c @ jac.transpose(-1, -2)  # [M, 2, 2]
+    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
+    return means2d, (cov2d[:, 0, 0] + eps2d, cov2d[:, 0, 1], cov2d[:, 1, 1] + eps2d), z
+
+
+def _radii(ca: Tensor, cc: Tensor, opac: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
+    """Bounding-box half-sizes [M] in pixels: the box of the ellipse where opacity * exp(-sigma) >= 1/255,
+    capped at 3.33 standard deviations (gsplat's opacity-aware radius)."""
+    ratio = torch.where(ok, opac / ALPHA_MIN, torch.ones_like(opac)).clamp_min(1.0)
+    extent = torch.sqrt(2.0 * torch.log(ratio)).clamp_max(MAX_EXTENT)
+    big = torch.full_like(ca, 1e12)
+    rad_x = torch.ceil(extent * torch.where(ok, ca, big).clamp(0.0, 1e12).sqrt())
+    rad_y = torch.ceil(extent * torch.where(ok, cc, big).clamp(0.0, 1e12).sqrt())
+    return rad_x, rad_y
+
+
+def project_gaussians(
+    gaussians: Gaussians,
+    extrinsics: Tensor,  # [B, V, 4, 4] camera-to-world
+    intrinsics: Tensor,  # [B, V, 3, 3] normalised
+    height: int,
+    width: int,
+    sh_degree: int,
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+    covariances: Tensor | None = None,  # [B, N, 3, 3] world covariances replacing scales / quats
+    colors: Tensor | None = None,  # [B, N, 3] fixed colours replacing the SH
+) -> tuple[Projected, CullCounts]:
+    """Cull and project every Gaussian into every camera of its batch element.
+
+    ``sh_degree`` is the number of SH bands evaluated (0 evaluates only the DC term, no basis at all).
+    ``covariances`` and ``colors`` serve pre-transformed Gaussians (see ``gsplat_backend.fold_cameras``).
+    """
+    b, n = gaussians.means.shape[:2]
+    v = extrinsics.shape[1]
+    dtype = gaussians.means.dtype
+    w2c = invert_pose(extrinsics)  # [B, V, 4, 4]
+    rot, trans = w2c[..., :3, :3], w2c[..., :3, 3]
+
+    # 1-2. opacity and depth culls on all pairs, from one row of the view matrix only.
+    opaque = gaussians.opacities >= ALPHA_MIN  # [B, N]
+    z_all = torch.einsum("bvk,bnk->bvn", rot[..., 2, :], gaussians.means) + trans[..., 2, None]  # [B, V, N]
+    in_range = (z_all > near) & (z_all < far)
+    keep = opaque[:, None] & in_range
+    total = b * v * n
+    transparent = int((~opaque).sum()) * v
+    depth_culled = int((opaque[:, None] & ~in_range).sum())
+
+    bi, vi, ni = keep.nonzero(as_tuple=True)
+    cam, gid = bi * v + vi, bi * n + ni
+    cameras = (rot.reshape(b * v, 3, 3), trans.reshape(b * v, 3), intrinsics.reshape(b * v, 3, 3))
+    flat_means = gaussians.means.reshape(b * n, 3)
+    if covariances is not None:
+        flat_cov = covariances.reshape(b * n, 3, 3)
+
+        def covariance(idx: Tensor) -> Tensor:
+            return flat_cov[idx]
+    else:
+        scales, quats = gaussians.scales.reshape(b * n, 3), gaussians.quats.reshape(b * n, 4)
+
+        def covariance(idx: Tensor) -> Tensor:
+            return covariance_from_scale_rot(scales[idx], quats[idx])
+
+    # 3. footprint cull, decided without autograd so no culled row can leak a NaN into the backward.
+    with torch.no_grad():
+        means2d, conic_cov, depth = _ewa(flat_means, covariance, cameras, cam, gid, height, width, eps2d)
+        ca, cb, cc = conic_cov
+        det = ca * cc - cb * cb
+        opac = gaussians.opacities.reshape(b * n)[gid]
+        ok = torch.isfinite(ca) & torch.isfinite(cb) & torch.isfinite(cc) & torch.isfinite(means2d).all(-1)
+        ok &= det > 0
+        rad_x, rad_y = _radii(ca, cc, opac, ok)
+        on_screen = (means2d[:, 0] + rad_x > 0) & (means2d[:, 0] - rad_x < width)
+        on_screen &= (means2d[:, 1] + rad_y > 0) & (means2d[:, 1] - rad_y < height)
+        visible = ok & ((rad_x > 0) | (rad_y > 0)) & on_screen
+        sel = visible.nonzero(as_tuple=True)[0]
+    footprint = int(cam.numel() - sel.numel())
+
+    cam_v, gid_v = cam[sel], gid[sel]
+    means2d, (ca, cb, cc), depth = _ewa(flat_means, covariance, cameras, cam_v, gid_v, height, width, eps2d)
+    det = ca * cc - cb * cb  # > 0 for every survivor
+    conics = torch.stack([cc / det, -cb / det, ca / det], dim=-1)
+
+    # Colours: only the SH bands in use; degree 0 never touches directions.
+    ncoef = num_sh_coeffs(sh_degree)
+    sh = gaussians.sh.flatten(0, 1)[:, :ncoef][gid_v]  # [Mv, K', 3]
+    if colors is not None:
+        colors = colors.reshape(b * n, 3)[gid_v]
+    elif sh_degree == 0:
+        colors = eval_sh(sh, sh.new_zeros(sh.shape[0], 3), 0)
+    else:
+        campos = extrinsics[..., :3, 3].reshape(b * v, 3)[cam_v]
+        d = flat_means[gid_v] - campos
+        norm2 = (d * d).sum(-1, keepdim=True)
+        dirs = d * torch.rsqrt(norm2.clamp_min(torch.finfo(dtype).tiny))  # z > near, so norm2 > 0
+        colors = eval_sh(sh, dirs, sh_degree)
+
+    projected = Projected(
+        camera=cam_v,
+        gaussian=gid_v,
+        means2d=means2d,
+        conics=conics,
+        radii=torch.stack([rad_x[sel], rad_y[sel]], dim=-1),
+        depths=depth,
+        opacities=gaussians.opacities.reshape(b * n)[gid_v],
+        colors=colors,
+    )
+    return projected, CullCounts(total, transparent, depth_culled, footprint)
+
+
+def active_sh_degree(sh: Tensor, requested: int, tol: float = 0.0) -> int:
+    """Highest SH band (<= ``requested``) whose coefficients carry energy above ``tol`` (max |c|).
+
+    Bands above it add exactly nothing to the colour, so they need not be evaluated.
+    """
+    degree = 0
+    for band in range(1, requested + 1):
+        lo, hi = num_sh_coeffs(band - 1), num_sh_coeffs(band)
+        if bool((sh[..., lo:hi, :].abs() > tol).any()):
+            degree = band
+    return degree

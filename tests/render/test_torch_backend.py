@@ -1,0 +1,166 @@
+"""The torch backend against the float64 sequential reference, gradcheck, and analytic cases."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from aesplat.geometry import C0, intrinsics_from_fov, rgb_to_sh_dc
+from aesplat.render import render
+from aesplat.types import Gaussians
+
+from .reference import reference_render
+from .scenes import cameras, random_scene
+
+H, W = 20, 28
+
+
+def _leaves(g: Gaussians, ext, intr, bg, dtype):
+    tensors = [g.means, g.quats, g.scales, g.opacities, g.sh, ext, intr, bg]
+    return [t.detach().clone().to(dtype).requires_grad_() for t in tensors]
+
+
+def _outputs_and_grads(fn, leaves, weights):
+    g = Gaussians(*leaves[:5])
+    outs = fn(g, *leaves[5:])
+    loss = sum((o * w.to(o.dtype)).sum() for o, w in zip(outs, weights))
+    grads = torch.autograd.grad(loss, leaves)
+    return [o.detach().double() for o in outs], [x.double() for x in grads]
+
+
+def _torch_fn(**options):
+    def fn(g, ext, intr, bg):
+        out = render(g, ext, intr, H, W, background=bg, backend="torch", **options)
+        return out.color, out.depth, out.alpha
+
+    return fn
+
+
+def _reference_fn(g, ext, intr, bg):
+    return reference_render(g, ext, intr, H, W, bg)
+
+
+@pytest.mark.parametrize(
+    ("seed", "options"),
+    [(1, {"tile_size": 8, "chunk": 4}), (2, {"tile_size": 16, "chunk": 32}), (3, {"tile_size": 4, "chunk": 7})],
+)
+def test_matches_reference_float32(seed, options):
+    g = random_scene(40, b=2, sh_degree=2, seed=seed)
+    ext, intr = cameras(2, 2)
+    bg = torch.rand(2, 3, dtype=torch.float64)
+    weights = [torch.rand(2, 2, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
+    ref_out, ref_grad = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
+    out, grad = _outputs_and_grads(_torch_fn(**options), _leaves(g, ext, intr, bg, torch.float32), weights)
+    assert ref_out[2].max() > 0.9 and (ref_out[2] < 1e-6).any()  # saturated and empty pixels both occur
+    for name, a, b in zip(("color", "depth", "alpha"), out, ref_out):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5, msg=name)
+    names = ("means", "quats", "scales", "opacities", "sh", "extrinsics", "intrinsics", "background")
+    for name, a, b in zip(names, grad, ref_grad):
+        assert torch.isfinite(a).all(), name
+        assert (a - b).abs().max() <= 1e-4 * b.abs().max(), f"{name}: {(a - b).abs().max()} vs {b.abs().max()}"
+
+
+def test_matches_reference_float64_exactly():
+    g = random_scene(30, b=1, sh_degree=3, seed=4)
+    ext, intr = cameras(1, 3)
+    bg = torch.rand(1, 3, dtype=torch.float64)
+    weights = [torch.rand(1, 3, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
+    ref_out, ref_grad = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
+    out, grad = _outputs_and_grads(_torch_fn(chunk=5), _leaves(g, ext, intr, bg, torch.float64), weights)
+    for a, b in zip(out + grad, ref_out + ref_grad):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
+
+
+def test_gradcheck_float64_gaussians_and_cameras():
+    g = random_scene(4, sh_degree=1, seed=5, spread=0.3)
+    g = Gaussians(g.means, g.quats, g.scales * 2, g.opacities.clamp(0.3, 0.8), g.sh)
+    ext, intr = cameras(1, 2)
+    h, w = 7, 9
+
+    def fn(means, quats, scales, opacities, sh, extrinsics, intrinsics):
+        out = render(Gaussians(means, quats, scales, opacities, sh), extrinsics, intrinsics, h, w,
+                     backend="torch", tile_size=4, chunk=2)  # fmt: skip
+        return out.color, out.depth, out.alpha
+
+    inputs = [t.clone().requires_grad_() for t in (g.means, g.quats, g.scales, g.opacities, g.sh, ext, intr)]
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+
+
+def _facing_gaussian(opacity: float, scale: float, z: float, rgb=(0.9, 0.4, 0.1)) -> Gaussians:
+    dc = rgb_to_sh_dc(torch.tensor(rgb))
+    return Gaussians(
+        means=torch.tensor([[[0.0, 0.0, z]]]),
+        quats=torch.tensor([[[1.0, 0.0, 0.0, 0.0]]]),
+        scales=torch.full((1, 1, 3), scale),
+        opacities=torch.tensor([[opacity]]),
+        sh=dc.reshape(1, 1, 1, 3),
+    )
+
+
+def test_single_gaussian_centre_and_footprint():
+    size, z, scale, opacity = 33, 2.0, 0.01, 0.7
+    g = _facing_gaussian(opacity, scale, z)
+    ext = torch.eye(4)[None, None]
+    intr = intrinsics_from_fov(torch.tensor([[math.radians(60.0)]]))
+    out = render(g, ext, intr, size, size, backend="torch")
+    centre = size // 2  # the optical axis passes through the centre of the middle pixel
+    torch.testing.assert_close(out.color[0, 0, :, centre, centre], opacity * torch.tensor([0.9, 0.4, 0.1]))
+    assert out.alpha[0, 0, 0, centre, centre] == pytest.approx(opacity, rel=1e-6)
+    assert out.depth[0, 0, 0, centre, centre] == pytest.approx(z, rel=1e-6)
+    focal = intr[0, 0, 0, 0].item() * size
+    var = (focal * scale / z) ** 2 + 0.3  # EWA variance in pixels^2, low-pass included
+    for d in range(1, 8):
+        expect = opacity * math.exp(-0.5 * d * d / var)
+        got = out.alpha[0, 0, 0, centre, centre + d].item()
+        assert got == pytest.approx(expect if expect >= 1 / 255 else 0.0, rel=1e-5, abs=1e-7)
+        assert out.alpha[0, 0, 0, centre + d, centre].item() == pytest.approx(got, rel=1e-6, abs=1e-9)
+    assert (out.alpha[0, 0, 0] > 0).sum() < size * size / 4  # a compact footprint
+
+
+def test_single_gaussian_sh_colour_is_dc_only_at_degree0():
+    g = _facing_gaussian(0.5, 0.05, 3.0, rgb=(0.2, 0.6, 1.0))
+    ext, intr = torch.eye(4)[None, None], intrinsics_from_fov(torch.tensor([[1.0]]))
+    out = render(g, ext, intr, 9, 9, backend="torch", background=torch.tensor([1.0, 1.0, 1.0]))
+    # colour + (1 - alpha) * white
+    expect = 0.5 * (C0 * g.sh[0, 0, 0] + 0.5) + 0.5
+    torch.testing.assert_close(out.color[0, 0, :, 4, 4], expect)
+
+
+@pytest.mark.parametrize("case", ["empty", "behind", "transparent", "offscreen"])
+def test_nothing_visible_gives_background_and_zero_gradients(case):
+    n = 0 if case == "empty" else 5
+    g = random_scene(max(n, 1), seed=6, dtype=torch.float32)
+    means = g.means[:, :n].clone()
+    opac = g.opacities[:, :n].clone()
+    if case == "behind":
+        means[..., 2] = -means[..., 2]
+    if case == "transparent":
+        opac = torch.full_like(opac, 1e-3)
+    if case == "offscreen":
+        means[..., 0] += 100.0
+    leaves = [t.requires_grad_() for t in (means, g.quats[:, :n].clone(), g.scales[:, :n].clone(), opac,
+                                          g.sh[:, :n].clone())]  # fmt: skip
+    ext, intr = cameras(1, 2, dtype=torch.float32)
+    ext.requires_grad_()
+    intr.requires_grad_()
+    bg = torch.tensor([0.2, 0.3, 0.4], requires_grad=True)
+    out = render(Gaussians(*leaves), ext, intr, 12, 10, background=bg, backend="torch")
+    torch.testing.assert_close(out.color, bg[None, None, :, None, None].expand_as(out.color).detach())
+    assert (out.alpha == 0).all() and (out.depth == 0).all()
+    loss = out.color.sum() + out.depth.sum() + out.alpha.sum()
+    grads = torch.autograd.grad(loss, [*leaves, ext, intr, bg], allow_unused=True)
+    for x in grads[:-1]:
+        assert x is None or (torch.isfinite(x).all() and (x == 0).all())
+    torch.testing.assert_close(grads[-1], torch.full((3,), 2.0 * 12 * 10))
+
+
+def test_tiling_options_do_not_change_the_result():
+    g = random_scene(60, b=2, sh_degree=1, seed=7, dtype=torch.float32)
+    ext, intr = cameras(2, 2, dtype=torch.float32)
+    base = render(g, ext, intr, 30, 41, backend="torch")
+    for options in ({"tile_size": 8, "chunk": 3}, {"tile_size": 5, "chunk": 64}, {"max_elements": 100}):
+        other = render(g, ext, intr, 30, 41, backend="torch", **options)
+        for a, b in zip((other.color, other.depth, other.alpha), (base.color, base.depth, base.alpha)):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
