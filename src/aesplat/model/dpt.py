@@ -22,14 +22,14 @@ class ResidualConvUnit(nn.Module):
 class FusionBlock(nn.Module):
     """Add the skip connection, refine, upsample to ``size``, mix channels."""
 
-    def __init__(self, c: int) -> None:
+    def __init__(self, c: int, has_skip: bool = True) -> None:
         super().__init__()
-        self.skip_unit = ResidualConvUnit(c)
+        self.skip_unit = ResidualConvUnit(c) if has_skip else None
         self.unit = ResidualConvUnit(c)
         self.out_conv = nn.Conv2d(c, c, 1)
 
     def forward(self, x: Tensor, skip: Tensor | None, size: tuple[int, int]) -> Tensor:
-        if skip is not None:
+        if self.skip_unit is not None and skip is not None:
             x = x + self.skip_unit(skip)
         x = F.interpolate(self.unit(x), size=size, mode="bilinear", align_corners=False)
         return self.out_conv(x)
@@ -55,7 +55,7 @@ class DPT(nn.Module):
             ]
         )
         self.layer_rn = nn.ModuleList(nn.Conv2d(ci, features, 3, padding=1, bias=False) for ci in c)
-        self.fusion = nn.ModuleList(FusionBlock(features) for _ in range(4))
+        self.fusion = nn.ModuleList(FusionBlock(features, has_skip=i < 3) for i in range(4))  # [3]: coarsest
 
     def forward(self, tokens: list[Tensor], grid: tuple[int, int]) -> Tensor:
         """tokens: 4 maps [N, h·w, in_dim]; grid (h, w) -> [N, features, 8h, 8w]."""
@@ -65,7 +65,7 @@ class DPT(nn.Module):
             x = self.norm(x).transpose(1, 2).reshape(x.shape[0], -1, h, w)
             levels.append(rn(resize(project(x))))
         l1, l2, l3, l4 = levels
-        path = self.fusion[3](l4, None, l3.shape[-2:])
+        path = self.fusion[3](l4, None, l3.shape[-2:])  # built without a skip unit
         path = self.fusion[2](path, l3, l2.shape[-2:])
         path = self.fusion[1](path, l2, l1.shape[-2:])
         return self.fusion[0](path, l1, (2 * l1.shape[-2], 2 * l1.shape[-1]))

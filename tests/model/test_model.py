@@ -1,0 +1,253 @@
+"""The assembled model: output container, masked attention, cameras at initialisation, ablations, groups."""
+
+import pytest
+import torch
+
+from aesplat.geometry import DEFAULT_FOV, focal_to_fov, num_sh_coeffs
+from aesplat.model import APPEARANCE_MODES, ModelOutput, build_model, i2dc
+from aesplat.types import Gaussians
+
+H = W = 56
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    return build_model("tiny", appearance="full", sh_degree=4)
+
+
+def _images(b: int, v: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(b, v, 3, H, W, generator=g)
+
+
+def _gaussian_fields(g: Gaussians) -> dict[str, torch.Tensor]:
+    return {name: getattr(g, name) for name in ("means", "quats", "scales", "opacities", "sh")}
+
+
+def test_output_container_shapes(model):
+    ctx, tgt = _images(2, 2, 0), _images(2, 1, 1)
+    with torch.no_grad():
+        out = model(ctx, tgt)
+    assert isinstance(out, ModelOutput)
+    g = out.gaussians
+    n = 2 * H * W
+    assert isinstance(g, Gaussians) and g.num_gaussians == n
+    assert g.sh.shape == (2, n, num_sh_coeffs(4), 3)
+    assert out.extrinsics.shape == (2, 3, 4, 4) and out.intrinsics.shape == (2, 3, 3, 3)
+    assert out.depth.shape == (2, 2, H, W)
+    assert (g.scales > 0).all() and (g.scales <= model.cfg.scale_max).all()
+    assert ((g.opacities > 0) & (g.opacities < 1)).all()
+    torch.testing.assert_close(g.quats.norm(dim=-1), torch.ones(2, n))
+    assert ((out.depth >= model.cfg.near) & (out.depth <= model.cfg.far)).all()
+    with pytest.raises(AttributeError):
+        out.depth = out.depth  # frozen
+
+
+def test_target_images_never_change_the_gaussians(model):
+    ctx, tgt = _images(1, 2, 0), _images(1, 2, 1)
+    with torch.no_grad():
+        a = model(ctx, tgt)
+        b = model(ctx, 1.0 - tgt)  # a very different target
+    for name, value in _gaussian_fields(a.gaussians).items():
+        assert torch.equal(value, getattr(b.gaussians, name)), name
+    assert torch.equal(a.depth, b.depth)
+    assert torch.equal(a.extrinsics[:, :2], b.extrinsics[:, :2])
+    assert torch.equal(a.intrinsics[:, :2], b.intrinsics[:, :2])
+    # ... while the target cameras do depend on the target images.
+    assert not torch.equal(a.extrinsics[:, 2:], b.extrinsics[:, 2:])
+    # Without targets, the Gaussians are the same (up to GEMM blocking on different batch shapes).
+    with torch.no_grad():
+        c = model(ctx)
+    torch.testing.assert_close(c.gaussians.means, a.gaussians.means)
+    assert c.extrinsics.shape == (1, 2, 4, 4)
+
+
+def test_context_images_change_the_gaussians(model):
+    ctx, tgt = _images(1, 2, 0), _images(1, 1, 1)
+    ctx2 = ctx.clone()
+    ctx2[:, 1, :, :14, :14] = 1.0 - ctx2[:, 1, :, :14, :14]
+    with torch.no_grad():
+        a, b = model(ctx, tgt), model(ctx2, tgt)
+    # view 0's Gaussians change too: global attention mixes the context views
+    n0 = H * W
+    assert not torch.equal(a.gaussians.means[:, :n0], b.gaussians.means[:, :n0])
+    assert not torch.equal(a.gaussians.sh[:, n0:], b.gaussians.sh[:, n0:])
+    assert not torch.equal(a.extrinsics[:, 1], b.extrinsics[:, 1])
+
+
+def test_more_views_work_and_masking_still_holds():
+    model = build_model("tiny", appearance="full", num_context_views=3)
+    ctx, tgt = _images(1, 3, 0), _images(1, 2, 1)
+    with torch.no_grad():
+        a, b = model(ctx, tgt), model(ctx, tgt.flip(-1))
+    assert a.gaussians.num_gaussians == 3 * H * W and a.extrinsics.shape == (1, 5, 4, 4)
+    assert torch.equal(a.gaussians.sh, b.gaussians.sh) and torch.equal(a.gaussians.means, b.gaussians.means)
+
+
+def test_view0_is_identity_and_initial_cameras(model):
+    with torch.no_grad():
+        out = model(_images(2, 2, 3), _images(2, 1, 4))
+    assert torch.equal(out.extrinsics[:, 0], torch.eye(4).expand(2, 4, 4))
+    assert torch.isfinite(out.extrinsics).all() and torch.isfinite(out.intrinsics).all()
+    rot = out.extrinsics[..., :3, :3]
+    torch.testing.assert_close(rot @ rot.transpose(-1, -2), torch.eye(3).expand_as(rot), atol=1e-5, rtol=0)
+    k = out.intrinsics
+    torch.testing.assert_close(focal_to_fov(k[..., 0, 0]), torch.full((2, 3), DEFAULT_FOV), atol=1e-6, rtol=0)
+    torch.testing.assert_close(k[..., 0, 0], k[..., 1, 1])
+    torch.testing.assert_close(k[..., :2, 2], torch.full((2, 3, 2), 0.5))
+    # rotations start at the identity, translations near zero
+    torch.testing.assert_close(rot, torch.eye(3).expand_as(rot), atol=1e-2, rtol=0)
+    assert out.extrinsics[..., :3, 3].abs().max() < 0.05
+
+
+def test_dc_is_i2dc_of_the_context_pixels(model):
+    ctx = _images(1, 2, 5)
+    with torch.no_grad():
+        out = model(ctx, _images(1, 1, 6))
+    assert torch.equal(out.gaussians.sh[:, :, :1], i2dc(ctx))
+
+
+@pytest.mark.parametrize("mode", APPEARANCE_MODES)
+def test_every_ablation_runs_forward_and_backward(mode):
+    model = build_model("tiny", appearance=mode, sh_degree=3)
+    ctx, tgt = _images(1, 2, 0), _images(1, 1, 1)
+    out = model(ctx, tgt)
+    k = 1 if mode == "i2dc_only" else num_sh_coeffs(3)
+    assert out.gaussians.sh.shape == (1, 2 * H * W, k, 3) and model.sh_degree == (0 if k == 1 else 3)
+    g = out.gaussians
+    loss = g.sh.square().mean() + g.means.square().mean() + g.scales.sum() + g.opacities.mean()
+    (loss + g.quats.sum() + out.extrinsics[:, 1:].square().sum() + out.intrinsics.sum()).backward()
+    groups = model.named_parameter_groups()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+    app = model.appearance
+    has_head = mode in ("full", "no_gvsre", "no_wcm")
+    assert (len(groups["appearance"]) > 0) == has_head
+    if has_head:
+        assert all(p.grad.abs().sum() > 0 for _, p in groups["appearance"])
+        width = model.cfg.gaussian_feature_dim + (model.cfg.gvsre_dim if mode != "no_gvsre" else 0)
+        width += 4 if mode != "no_wcm" else 0  # one other context view: 3 colours + 1 mask
+        assert app.view_dependent_head.net[0].normalized_shape == (width,)
+    head_sh = {"baseline": k, "baseline_i2dc": k - 1}.get(mode, 0)
+    assert model.gaussian_head.out.out_channels == 8 + 3 * head_sh
+    if mode != "baseline":
+        assert torch.equal(g.sh[:, :, :1], i2dc(ctx))
+
+
+def test_i2dc_only_ignores_a_requested_degree():
+    assert build_model("tiny", appearance="i2dc_only", sh_degree=4).sh_degree == 0
+
+
+def test_parameter_groups_partition_the_trainable_parameters(model):
+    groups = model.named_parameter_groups()
+    assert set(groups) == {"appearance", "backbone", "rest"}
+    names = [n for g in groups.values() for n, _ in g]
+    assert len(names) == len(set(names))
+    assert set(names) == {n for n, p in model.named_parameters() if p.requires_grad}
+    app = {n for n, _ in groups["appearance"]}
+    assert any(n.startswith("appearance.view_dependent_head.") for n in app)
+    assert any(n.startswith("appearance.gvsre.") for n in app)
+    assert all(n.startswith("encoder.") for n, _ in groups["backbone"])
+    assert any(n.startswith("camera_head.") for n, _ in groups["rest"])
+    assert model.pretrained_backbone is False
+
+
+def test_tiny_is_small():
+    assert sum(p.numel() for p in build_model("tiny").parameters()) < 5_000_000
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"size": "huge"}, ValueError, "unknown model size"),
+        ({"appearance": "nope"}, ValueError, "unknown appearance"),
+        ({"depth_range": 3}, TypeError, "unknown option 'depth_range'"),
+        ({"near": 2.0, "far": 1.0}, ValueError, "near < far"),
+    ],
+)
+def test_build_model_rejects_bad_options(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        build_model(**kwargs)
+
+
+def test_build_model_options_reach_the_modules():
+    m = build_model("tiny", near=0.5, far=20.0, rope=False, num_register_tokens=3, sh_degree=2)
+    assert m.transformer.rope is None and m.transformer.register_token.shape[2] == 3
+    assert m.transformer.patch_start == 4
+    with torch.no_grad():
+        out = m(_images(1, 2, 0))
+    assert out.depth.min() >= 0.5 and out.depth.max() <= 20.0
+    assert out.gaussians.sh.shape[2] == 9
+
+
+@pytest.mark.parametrize(
+    ("ctx_shape", "tgt_shape", "match"),
+    [
+        ((1, 2, 3, 50, 56), None, "multiples of 14"),
+        ((1, 1, 3, 56, 56), None, "at least 2 context views"),
+        ((1, 2, 56, 56), None, r"\[B, Vc, 3, H, W\]"),
+        ((1, 2, 3, 56, 56), (1, 1, 3, 28, 28), "target_images"),
+    ],
+)
+def test_forward_rejects_bad_inputs(model, ctx_shape, tgt_shape, match):
+    tgt = None if tgt_shape is None else torch.rand(tgt_shape)
+    with pytest.raises(ValueError, match=match):
+        model(torch.rand(ctx_shape), tgt)
+
+
+def test_view_dependent_head_needs_the_configured_number_of_views(model):
+    with pytest.raises(ValueError, match="num_context_views"):
+        model(_images(1, 3, 0))
+
+
+def _all_finite(out: ModelOutput) -> bool:
+    g = out.gaussians
+    tensors = [g.means, g.quats, g.scales, g.opacities, g.sh, out.extrinsics, out.intrinsics, out.depth]
+    return all(torch.isfinite(t).all() for t in tensors)
+
+
+def _backward_is_finite(model, out: ModelOutput) -> bool:
+    model.zero_grad()
+    g = out.gaussians
+    loss = g.sh.square().mean() + g.means.square().mean() + g.scales.sum() + out.extrinsics[:, 1:].sum()
+    (loss + g.opacities.sum() + g.quats.sum()).backward()
+    return all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("fill", [0.0, 1.0])
+def test_constant_images_stay_finite(model, fill):
+    images = torch.full((1, 3, 3, H, W), fill)
+    out = model(images[:, :2], images[:, 2:])
+    assert _all_finite(out) and _backward_is_finite(model, out)
+
+
+@pytest.mark.parametrize("raw_depth", [-1e4, 1e4])
+def test_extreme_depth_stays_finite(raw_depth):
+    model = build_model("tiny")
+    with torch.no_grad():
+        model.depth_head.out[-1].bias.fill_(raw_depth)
+    images = _images(1, 3, 0)
+    out = model(images[:, :2], images[:, 2:])
+    bound = model.cfg.near if raw_depth < 0 else model.cfg.far
+    torch.testing.assert_close(out.depth, torch.full_like(out.depth, bound))
+    assert _all_finite(out) and _backward_is_finite(model, out)
+
+
+def test_bf16_autocast_runs_transformer_in_bf16_and_heads_in_fp32(model):
+    images = _images(1, 3, 0)
+    seen = {}
+
+    def record(module, inputs, outputs):
+        seen["dtype"] = outputs.dtype
+
+    hook = model.transformer.global_blocks[-1].attn.qkv.register_forward_hook(record)  # a transformer matmul
+    try:
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            out = model(images[:, :2], images[:, 2:])
+    finally:
+        hook.remove()
+    assert seen["dtype"] == torch.bfloat16
+    g = out.gaussians
+    assert all(t.dtype == torch.float32 for t in (g.means, g.sh, g.scales, out.extrinsics, out.depth))
+    assert _all_finite(out) and _backward_is_finite(model, out)
