@@ -7,8 +7,14 @@ import torch
 from torch import nn
 
 from aesplat.geometry import C0, num_sh_coeffs, sh_dc_to_rgb
-from aesplat.model import APPEARANCE_MODES, DecoupledAppearance, ViewDependentHead, gvsre_descriptor, i2dc
-from aesplat.model import warped_color_map
+from aesplat.model import (
+    APPEARANCE_MODES,
+    DecoupledAppearance,
+    ViewDependentHead,
+    gvsre_descriptor,
+    i2dc,
+    warped_color_map,
+)
 
 
 def _pose(tx: float = 0.0, ty: float = 0.0, tz: float = 0.0) -> torch.Tensor:
