@@ -94,7 +94,7 @@ def crop_resize(jpeg: bytes, size: int, intrinsics: np.ndarray) -> tuple[Image.I
 
 def _encode(image: Image.Image, quality: int) -> bytes:
     buf = io.BytesIO()
-    image.save(buf, format="JPEG", quality=quality)
+    image.save(buf, format="JPEG", quality=quality, subsampling=0)  # 4:4:4: small images keep their colour
     return buf.getvalue()
 
 

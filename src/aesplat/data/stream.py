@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from PIL import Image
 from torch import Tensor
 from torch.utils.data import IterableDataset, get_worker_info
-from torchvision.io import decode_jpeg
 
 from aesplat.types import BatchedExample, BatchedViews
 
@@ -123,9 +123,8 @@ def decode_sample(key: str, raw: dict[str, bytes], cfg: StreamConfig, rng: np.ra
     names = ctx_names + [tgt_names[i] for i in picked]
     images = []
     for name in names:
-        img = decode_jpeg(torch.frombuffer(bytearray(raw[name]), dtype=torch.uint8))  # [3, H, W] uint8
-        if img.shape[0] == 1:
-            img = img.expand(3, -1, -1)
+        with Image.open(io.BytesIO(raw[name])) as pil:
+            img = torch.from_numpy(np.array(pil.convert("RGB"))).permute(2, 0, 1)  # [3, H, W] uint8
         if img.shape[1:] != (cfg.image_size, cfg.image_size):
             if img.shape[1] != img.shape[2]:
                 raise ValueError(f"{name} is {tuple(img.shape[1:])}, shard images must be square")

@@ -1,0 +1,198 @@
+"""Chunk -> shard conversion: round trip, real field layout, skipped scenes, resumability, manifest."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from aesplat.data import DataModule, convert_dataset, verify_shards
+from aesplat.data.stream import read_tar
+from aesplat.data.synthetic import render_scene, sample_scene
+from aesplat.geometry import project_points, unproject_depth
+
+H, W = 48, 64  # landscape source: the centre crop keeps columns 8..56
+SIZE = 32
+
+
+def jpeg_tensor(image: np.ndarray, quality: int = 95) -> torch.Tensor:
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="JPEG", quality=quality)
+    return torch.tensor(list(buf.getvalue()), dtype=torch.uint8)
+
+
+def chunk_entry(key: str, images: np.ndarray, c2w: np.ndarray, k: np.ndarray) -> dict:
+    """A scene in the real pixelSplat field layout, built from plain tensors (independent of the library)."""
+    w2c = np.linalg.inv(c2w)[:, :3, :]  # [F, 3, 4]
+    f = len(images)
+    rows = np.concatenate([k[:, [0, 1, 0, 1], [0, 1, 2, 2]], np.zeros((f, 2)), w2c.reshape(f, 12)], axis=1)
+    return {
+        "url": f"https://www.youtube.com/watch?v={key}",
+        "timestamps": torch.arange(f, dtype=torch.int64) * 33_366_666,
+        "cameras": torch.tensor(rows, dtype=torch.float32),
+        "images": [jpeg_tensor(im) for im in images],
+        "key": key,
+    }
+
+
+@pytest.fixture(scope="module")
+def scene():
+    s = sample_scene(21, frames=8, height=H, width=W, effects=("textures",))
+    return s, render_scene(s, H, W)
+
+
+def write_source(root: Path, train: list[dict], test: list[dict], evaluation: dict) -> None:
+    for split, scenes in (("train", train), ("test", test)):
+        (root / split).mkdir(parents=True)
+        torch.save(scenes, root / split / "000000.torch")
+        (root / split / "index.json").write_text(json.dumps({s["key"]: "000000.torch" for s in scenes}))
+    (root / "evaluation_index.json").write_text(json.dumps(evaluation))
+
+
+def test_round_trip_chunk_to_batch(tmp_path, scene):
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    c2w = s.extrinsics.double().numpy()
+    k = s.intrinsics.double().expand(8, 3, 3).numpy()
+    entry = chunk_entry("0a1b2c3d", images, c2w, k)
+    evaluation = {"0a1b2c3d": {"context": [1, 6], "target": [2, 3, 5], "overlap": 0.5}}
+    write_source(tmp_path / "src", [entry], [entry], evaluation)
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=SIZE, min_gap=3, max_gap=6,
+                               samples_per_scene=3, progress=False)  # fmt: skip
+    assert manifest["splits"]["test"]["samples"] == 1 and manifest["splits"]["train"]["samples"] == 3
+
+    dm = DataModule(root=str(tmp_path / "out"), image_size=SIZE, num_workers=0, near=0.1, far=20.0)
+    batch = next(iter(dm.eval_dataset()))
+    frames = [1, 6, 2, 3, 5]
+    assert batch.scene == ["0a1b2c3d"] and batch.gap.tolist() == [5]
+    assert batch.overlap.tolist() == [0.5]
+    assert batch.context.index.tolist() == [[1, 6]] and batch.target.index.tolist() == [[2, 3, 5]]
+    extr = torch.cat([batch.context.extrinsics, batch.target.extrinsics], 1)[0]
+    intr = torch.cat([batch.context.intrinsics, batch.target.intrinsics], 1)[0]
+    assert torch.allclose(extr, s.extrinsics[frames], atol=1e-5)
+    assert batch.context.images.dtype == torch.uint8 and batch.context.images.shape == (1, 2, 3, SIZE, SIZE)
+    assert torch.all(batch.context.near == 0.1) and torch.all(batch.target.far == 20.0)
+
+    # Images: the source frame's centre crop, resized, within the tolerance of one more JPEG generation.
+    got = torch.cat([batch.context.images, batch.target.images], 1)[0].permute(0, 2, 3, 1).float()
+    for v, f in enumerate(frames):
+        source = Image.open(io.BytesIO(bytes(entry["images"][f].tolist())))
+        expect = np.array(source.crop((8, 0, 56, 48)).resize((SIZE, SIZE), Image.Resampling.BICUBIC))
+        error = (got[v] - torch.from_numpy(expect).float()).abs()
+        assert error.mean() < 3.0 and error.max() < 40  # a crop one pixel off fails
+
+    # Intrinsics: a 3D point lands on the same (cropped, scaled) pixel.
+    pts = unproject_depth(r.depth[None, [1]], s.intrinsics.expand(1, 1, 3, 3), s.extrinsics[None, [1]])
+    pts = pts.reshape(1, -1, 3)[:, ::37]
+    uv_src, _, valid = project_points(pts, s.intrinsics.expand(1, 5, 3, 3), s.extrinsics[None, frames], H, W)
+    uv_out, _, _ = project_points(pts, intr[None], extr[None], SIZE, SIZE)
+    expected = torch.stack([(uv_src[..., 0] - 8) * SIZE / H, uv_src[..., 1] * SIZE / H], -1)
+    assert valid.any()
+    assert torch.allclose(uv_out[valid], expected[valid], atol=1e-3)
+
+    # Training samples: gaps over the whole range (the smallest always present), targets between the context.
+    train = list(read_tar(next((tmp_path / "out" / "train").glob("*.tar"))))
+    gaps = []
+    for key, raw in train:
+        meta = json.loads(raw["meta.json"])
+        c0, c1 = meta["context"]
+        gaps.append(meta["gap"])
+        assert c1 - c0 == meta["gap"] and 3 <= meta["gap"] <= 6
+        assert all(c0 < t < c1 for t in meta["target"]) and len(meta["target"]) == 2 + (meta["gap"] > 3)
+        cams = np.load(io.BytesIO(raw["extrinsics.npy"]))
+        assert np.allclose(cams, c2w[meta["context"] + meta["target"]], atol=1e-5)
+        assert key.startswith("0a1b2c3d_")
+    assert min(gaps) == 3
+
+
+def test_webdataset_reads_the_shards(synthetic_shards):
+    import webdataset as wds
+
+    shard = sorted((synthetic_shards / "test").glob("*.tar"))[0]
+    sample = next(iter(wds.WebDataset(str(shard), shardshuffle=False)))
+    assert {"ctx0.jpg", "ctx1.jpg", "tgt0.jpg", "extrinsics.npy", "intrinsics.npy", "meta.json"} <= set(sample)
+    meta = json.loads(sample["meta.json"])
+    assert set(meta) == {"scene", "dataset", "context", "target", "gap", "overlap"}
+    assert meta["dataset"] == "synthetic"
+
+
+def test_invalid_scenes_are_skipped_and_counted(tmp_path, scene):
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    c2w = s.extrinsics.double().numpy()
+    k = s.intrinsics.double().expand(8, 3, 3).numpy().copy()
+    good = chunk_entry("good", images, c2w, k)
+    wrong_shape = chunk_entry("wrongshape", images, c2w, k)
+    wrong_shape["images"][3] = jpeg_tensor(images[3][:, :40])
+    wide_k = k.copy()
+    wide_k[:, 0, 0] = 0.3  # horizontal FOV 2 atan(0.5 / 0.3) = 118 degrees
+    wide = chunk_entry("wide", images, c2w, wide_k)
+    still = c2w.copy()
+    still[:, :3, 3] = c2w[0, :3, 3]
+    static = chunk_entry("static", images, still, k)
+    corrupt = chunk_entry("corrupt", images, c2w, k)
+    corrupt["images"][2] = torch.tensor(list(b"not a jpeg at all"), dtype=torch.uint8)
+    short = chunk_entry("short", images[:2], c2w[:2], k[:2])
+    evaluation = {"good": {"context": [0, 7], "target": [3], "overlap": 0.4}, "wide": None, "absent": None,
+                  "missing": {"context": [0, 2], "target": [1], "overlap": 0.9}}  # fmt: skip
+    train = [good, wrong_shape, wide, static, corrupt, short]
+    test = [good, wide, chunk_entry("unindexed", images, c2w, k)]
+    write_source(tmp_path / "src", train, test, evaluation)
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=2, max_gap=7,
+                               samples_per_scene=4, progress=False)  # fmt: skip
+    tr, te = manifest["splits"]["train"], manifest["splits"]["test"]
+    assert tr["skips"] == {"corrupt_image": 1, "degenerate_baseline": 1, "fov_too_wide": 1, "too_few_frames": 1,
+                           "wrong_shape": 1}  # fmt: skip
+    assert tr["scenes"] == 1 and tr["scenes_seen"] == 6 and tr["samples"] == 4
+    assert te["skips"] == {"fov_too_wide": 1, "not_in_evaluation_index": 1}
+    assert te["samples"] == 1 and te["evaluation_index_missing"] == 1
+    for split in ("train", "test"):
+        for shard in manifest["splits"][split]["shards"]:
+            assert len(shard["sha256"]) == 64
+
+    # The same scenes pass when the limits allow them.
+    loose = convert_dataset(tmp_path / "src", tmp_path / "out2", size=16, min_gap=2, max_gap=7, max_fov_deg=130,
+                            progress=False)  # fmt: skip
+    assert "fov_too_wide" not in loose["splits"]["train"]["skips"]
+    strict = convert_dataset(tmp_path / "src", tmp_path / "out3", size=16, expect_shape=(H, W + 2),
+                             progress=False)  # fmt: skip
+    assert strict["splits"]["train"]["samples"] == 0
+
+
+def test_conversion_resumes_and_verifies(tmp_path, synthetic_src):
+    out = tmp_path / "out"
+    first = convert_dataset(synthetic_src, out, size=16, workers=2, samples_per_scene=2, progress=False)
+    shards = sorted((out / "train").glob("*.tar"))
+    assert len(shards) >= 2 and verify_shards(out) == []
+    stamps = {p.name: p.stat().st_mtime_ns for p in shards}
+    shards[1].unlink()  # an interrupted run: one shard never finished
+    (out / "train" / (shards[1].stem + ".tar.tmp")).write_bytes(b"partial")
+    assert verify_shards(out) == [f"train/{shards[1].name}"]
+    again = convert_dataset(synthetic_src, out, size=16, workers=2, samples_per_scene=2, progress=False)
+    assert again["splits"] == first["splits"]
+    assert shards[1].exists() and verify_shards(out) == []
+    for p in shards[:1] + shards[2:]:
+        assert p.stat().st_mtime_ns == stamps[p.name]  # finished shards were kept, not rewritten
+
+    data = bytearray(shards[0].read_bytes())  # bit rot: the checksum catches it, a rerun repairs it
+    data[600] ^= 0xFF
+    shards[0].write_bytes(bytes(data))
+    assert verify_shards(out) == [f"train/{shards[0].name}"]
+    os.utime(shards[0])
+    convert_dataset(synthetic_src, out, size=16, workers=1, samples_per_scene=2, progress=False)
+    assert verify_shards(out) == []
+
+    # Other options: a different size is a different conversion, never a silent reuse.
+    other = convert_dataset(synthetic_src, out, size=20, samples_per_scene=2, progress=False)
+    assert other["config"]["size"] == 20
+
+
+def test_missing_source_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="train/ or test/"):
+        convert_dataset(tmp_path, tmp_path / "out", progress=False)
