@@ -1,0 +1,123 @@
+"""Patch encoder: shapes, and loading local timm-format and original-DINOv2-format checkpoints by name."""
+
+import pytest
+import torch
+
+from aesplat.model import (
+    EncoderConfig,
+    PatchEncoder,
+    build_model,
+    convert_encoder_state_dict,
+    load_encoder_weights,
+)
+
+DIM, DEPTH = 96, 4  # the tiny preset's encoder
+
+
+def timm_state_dict(dim: int, depth: int, grid: int, registers: int = 0, cls_pos: bool = True) -> dict:
+    """A ViT/14 state dict with timm's ``vit_*_patch14_dinov2`` key names, built from the names alone."""
+    g = torch.Generator().manual_seed(1)
+
+    def r(*shape):
+        return torch.randn(*shape, generator=g)
+
+    sd = {
+        "cls_token": r(1, 1, dim),
+        "pos_embed": r(1, grid * grid + (1 if cls_pos else 0), dim),
+        "patch_embed.proj.weight": r(dim, 3, 14, 14),
+        "patch_embed.proj.bias": r(dim),
+        "norm.weight": r(dim),
+        "norm.bias": r(dim),
+    }
+    if registers:
+        sd["reg_token"] = r(1, registers, dim)
+    for i in range(depth):
+        p = f"blocks.{i}."
+        sd |= {
+            p + "norm1.weight": r(dim), p + "norm1.bias": r(dim),
+            p + "attn.qkv.weight": r(3 * dim, dim), p + "attn.qkv.bias": r(3 * dim),
+            p + "attn.proj.weight": r(dim, dim), p + "attn.proj.bias": r(dim),
+            p + "ls1.gamma": r(dim),
+            p + "norm2.weight": r(dim), p + "norm2.bias": r(dim),
+            p + "mlp.fc1.weight": r(4 * dim, dim), p + "mlp.fc1.bias": r(4 * dim),
+            p + "mlp.fc2.weight": r(dim, 4 * dim), p + "mlp.fc2.bias": r(dim),
+            p + "ls2.gamma": r(dim),
+        }  # fmt: skip
+    return sd
+
+
+def to_dinov2(sd: dict) -> dict:
+    """The original DINOv2 release's names: ``register_tokens``, an (unused) ``mask_token``."""
+    out = {("register_tokens" if k == "reg_token" else k): v for k, v in sd.items()}
+    out["mask_token"] = torch.zeros(1, sd["cls_token"].shape[-1])
+    return out
+
+
+def test_encoder_output_shape_and_normalisation():
+    enc = PatchEncoder(EncoderConfig(dim=DIM, depth=2, num_heads=3, num_registers=4, pos_grid=16))
+    tokens = enc(torch.rand(2, 3, 28, 42))
+    assert tokens.shape == (2, 2 * 3, DIM)
+    torch.testing.assert_close(tokens.mean(-1), torch.zeros(2, 6), atol=1e-5, rtol=0)  # final LayerNorm
+
+
+def test_load_timm_checkpoint(tmp_path):
+    sd = timm_state_dict(DIM, DEPTH, grid=16)
+    path = tmp_path / "vit_tiny_timm.pth"
+    torch.save(sd, path)
+    model = build_model("tiny", weights=str(path))
+    report = model.weights_report
+    assert report.format == "timm" and report.missing == [] and report.unexpected == []
+    assert model.pretrained_backbone
+    own = model.encoder.state_dict()
+    for key, value in sd.items():
+        assert torch.equal(own[key], value), key
+
+
+def test_load_dinov2_checkpoint_interpolates_positions_and_reports_keys(tmp_path):
+    sd = to_dinov2(timm_state_dict(DIM, DEPTH, grid=37, registers=4))  # 518-pixel position grid
+    sd["head.weight"] = torch.zeros(10, DIM)  # a classifier this encoder does not have
+    del sd["norm.bias"]
+    path = tmp_path / "dinov2_reg.pth"
+    torch.save({"model": {"backbone." + k: v for k, v in sd.items()}}, path)
+    with pytest.warns(UserWarning, match="missing 1.*norm.bias.*unexpected 1.*head.weight"):
+        model = build_model("tiny", weights=str(path), encoder_registers=4)
+    report = model.weights_report
+    assert report.format == "dinov2"
+    assert report.missing == ["norm.bias"] and report.unexpected == ["head.weight"]
+    assert report.ignored == ["backbone.mask_token"]
+    own = model.encoder.state_dict()
+    assert torch.equal(own["reg_token"], sd["register_tokens"])
+    assert torch.equal(own["blocks.3.mlp.fc2.weight"], sd["blocks.3.mlp.fc2.weight"])
+    assert own["pos_embed"].shape == (1, 1 + 16 * 16, DIM)
+    assert torch.equal(own["pos_embed"][:, 0], sd["pos_embed"][:, 0])
+    assert model.pretrained_backbone
+    with torch.no_grad():
+        assert torch.isfinite(model.encoder(torch.rand(1, 3, 28, 28))).all()
+
+
+def test_load_timm_reg4_checkpoint_without_class_position(tmp_path):
+    sd = timm_state_dict(DIM, DEPTH, grid=16, registers=4, cls_pos=False)
+    path = tmp_path / "timm_reg4.pth"
+    torch.save(sd, path)
+    model = build_model("tiny", weights=str(path), encoder_registers=4)
+    pos = model.encoder.state_dict()["pos_embed"]
+    assert torch.equal(pos[:, 1:], sd["pos_embed"]) and pos[:, 0].eq(0).all()
+    assert model.weights_report.missing == [] and model.weights_report.unexpected == []
+
+
+def test_checkpoint_of_another_size_is_an_error(tmp_path):
+    path = tmp_path / "vit_small.pth"
+    torch.save(timm_state_dict(384, 1, grid=4), path)
+    with pytest.raises(ValueError, match="pick the model size"):
+        build_model("tiny", weights=str(path))
+
+
+def test_missing_weights_file_is_an_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        load_encoder_weights(PatchEncoder(EncoderConfig(dim=DIM, depth=1, num_heads=3)), tmp_path / "nope.pth")
+
+
+def test_dinov2_block_chunks_and_prefixes_are_mapped():
+    sd = {"module.blocks.1.5.attn.qkv.weight": torch.zeros(1), "blocks.2.ls1.gamma": torch.ones(1)}
+    out, fmt, ignored = convert_encoder_state_dict(sd)
+    assert set(out) == {"blocks.5.attn.qkv.weight", "blocks.2.ls1.gamma"} and fmt == "timm" and ignored == []
