@@ -169,6 +169,12 @@ def collate(samples: list[dict], cfg: StreamConfig) -> BatchedExample:
             index=torch.stack([s["index"][sl] for s in samples]),
         )
 
+    counts = sorted({s["images"].shape[0] - nc for s in samples})
+    if len(counts) > 1:
+        raise ValueError(
+            f"samples of one batch have different numbers of target views {counts} (scenes "
+            f"{[s['scene'] for s in samples]}): set eval_num_target_views or eval_batch_size=1"
+        )
     return BatchedExample(
         context=views(slice(0, nc)),
         target=views(slice(nc, None)),
@@ -249,7 +255,10 @@ class TrainStream(_ShardStream):
         mine = self.shards[self.rank :: self.world_size] if len(self.shards) >= self.world_size else self.shards
         return mine[worker::num_workers] if len(mine) >= num_workers else mine
 
-    def _raw_forever(self, shards: list[str], rng: np.random.Generator) -> Iterator[tuple[str, str, dict]]:
+    def _raw_forever(
+        self, shards: list[str], rng: np.random.Generator
+    ) -> Iterator[tuple[str, str, dict] | None]:
+        """Shuffled raw samples forever; ``None`` marks the end of each pass over the shards."""
         buffer: list[tuple[str, str, dict]] = []
         while True:
             yielded = 0
@@ -263,6 +272,7 @@ class TrainStream(_ShardStream):
                 raise RuntimeError(f"training shards {shards} hold no readable samples")
             while len(buffer) > self.shuffle_buffer // 2:
                 yield buffer.pop(int(rng.integers(len(buffer))))
+            yield None
 
     def __iter__(self) -> Iterator[BatchedExample]:
         wid, nw = _worker()
@@ -271,9 +281,21 @@ class TrainStream(_ShardStream):
         rng = np.random.default_rng([self.seed, self.rank, wid, int(self.step[0])])
         raw_stream = self._raw_forever(shards, rng)
         batch: list[dict] = []
-        rejected_in_a_row, gaps_seen = 0, set()
+        barren_passes, accepted, gaps_seen = 0, 0, set()
         while todo > 0:
-            shard, key, raw = next(raw_stream)
+            item = next(raw_stream)
+            if item is None:  # end of a pass: two in a row without one usable sample cannot recover
+                barren_passes = 0 if accepted else barren_passes + 1
+                accepted = 0
+                if barren_passes >= 2:
+                    step = int(self.step[0])
+                    raise RuntimeError(
+                        f"no training sample has a context gap allowed by the curriculum at step {step} "
+                        f"({self.curriculum.allowed(step)}) or decodes; gaps seen: {sorted(gaps_seen)[:20]}. "
+                        "Convert with a matching --min-gap/--max-gap or change the curriculum ranges."
+                    )
+                continue
+            shard, key, raw = item
             try:
                 gap = int(json.loads(raw["meta.json"])["gap"])
             except Exception:  # noqa: BLE001
@@ -281,19 +303,12 @@ class TrainStream(_ShardStream):
             step = int(self.step[0])
             if gap is not None and not self.curriculum.accepts(gap, step):
                 self._count("curriculum_skipped")
-                rejected_in_a_row += 1
                 gaps_seen.add(gap)
-                if rejected_in_a_row > 20_000:
-                    raise RuntimeError(
-                        f"no training sample has a context gap allowed by the curriculum at step {step} "
-                        f"({self.curriculum.allowed(step)}); shard gaps include {sorted(gaps_seen)[:20]}. "
-                        "Convert with a matching --min-gap/--max-gap or change the curriculum ranges."
-                    )
                 continue
-            rejected_in_a_row = 0
             sample = self._decode(shard, key, raw, rng)
             if sample is None:
                 continue
+            accepted += 1
             batch.append(sample)
             if len(batch) == self.cfg.batch_size:
                 yield collate(batch, self.cfg)

@@ -416,11 +416,9 @@ def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int,
                 rendered = render_scene(scene, height, width)
                 chunk.append(scene_to_chunk_entry(scene, rendered, jpeg_quality))
                 if split == "test":
-                    gap = int(eval_rng.integers(lo, hi + 1))
+                    gap = int(eval_rng.integers(max(lo, 4), max(hi, 4) + 1))  # room for three targets
                     c0 = int(eval_rng.integers(0, frames - gap))
-                    targets = sorted(
-                        eval_rng.choice(np.arange(c0 + 1, c0 + gap), size=min(3, gap - 1), replace=False)
-                    )
+                    targets = sorted(eval_rng.choice(np.arange(c0 + 1, c0 + gap), size=3, replace=False))
                     overlap = view_overlap(rendered.depth, scene.extrinsics, scene.intrinsics, c0, c0 + gap)
                     eval_index[scene.key] = {"context": [c0, c0 + gap], "target": [int(t) for t in targets],
                                              "overlap": round(overlap, 4)}  # fmt: skip
