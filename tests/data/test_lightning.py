@@ -1,0 +1,69 @@
+"""The DataModule under a real Lightning Trainer: batches move to the device, the step drives the curriculum,
+checkpoints carry the curriculum state."""
+
+from __future__ import annotations
+
+import lightning as L
+import torch
+
+from aesplat.data import DataModule
+from aesplat.types import BatchedExample
+
+from .conftest import SIZE
+
+
+class Probe(L.LightningModule):
+    """The smallest module that consumes ``BatchedExample`` like the real one does."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.weight = torch.nn.Parameter(torch.zeros(3))
+        self.gaps: list[tuple[int, list[int]]] = []
+
+    def on_train_batch_start(self, batch: BatchedExample, batch_idx: int) -> None:
+        self.trainer.datamodule.set_global_step(self.global_step)
+
+    def training_step(self, batch: BatchedExample, batch_idx: int) -> torch.Tensor:
+        assert isinstance(batch, BatchedExample)
+        batch = batch.float_images()
+        assert batch.context.images.dtype == torch.float32 and batch.context.images.max() <= 1.0
+        self.gaps.append((self.global_step, batch.gap.tolist()))
+        colour = batch.target.images.mean(dim=(0, 1, 3, 4))
+        return ((colour - self.weight) ** 2).sum()
+
+    def validation_step(self, batch: BatchedExample, batch_idx: int) -> None:
+        self.log("val/probe", batch.float_images().target.images.mean())
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def test_fit_and_resume_restore_the_curriculum(synthetic_shards, tmp_path):
+    def make_dm() -> DataModule:
+        return DataModule(root=str(synthetic_shards), image_size=SIZE, batch_size=2, num_workers=0, near=0.1,
+                          far=20.0, gap_initial=(2, 3), gap_final=(6, 8), gap_warmup_steps=4,
+                          train_batches_per_epoch=3, shuffle_buffer=4)  # fmt: skip
+
+    def trainer(steps: int) -> L.Trainer:
+        return L.Trainer(max_steps=steps, accelerator="cpu", devices=1, logger=False, enable_progress_bar=False,
+                         enable_model_summary=False, default_root_dir=tmp_path, num_sanity_val_steps=0,
+                         limit_val_batches=2)  # fmt: skip
+
+    def allowed_near(step: int, gap: int) -> bool:
+        # Batches are fetched ahead of the step that uses them: up to two steps here (Lightning prefetches one).
+        return any(dm.curriculum.accepts(gap, s) for s in range(max(0, step - 2), step + 1))
+
+    dm, probe = make_dm(), Probe()
+    trainer(4).fit(probe, datamodule=dm)
+    assert all(allowed_near(step, g) for step, gaps in probe.gaps for g in gaps)
+    assert all(g <= 3 for g in probe.gaps[0][1])  # the first batch: the initial range
+    ckpt = next(tmp_path.rglob("*.ckpt"))
+    state = torch.load(ckpt, weights_only=False)
+    assert state["DataModule"]["global_step"] == 3  # set at the start of the last step
+
+    resumed_dm, resumed = make_dm(), Probe()
+    trainer(6).fit(resumed, datamodule=resumed_dm, ckpt_path=ckpt)
+    assert resumed_dm.global_step == 5
+    assert [s for s, _ in resumed.gaps] == [4, 5]
+    assert all(allowed_near(step, g) for step, gaps in resumed.gaps for g in gaps)
+    assert all(g >= 5 for _, gaps in resumed.gaps for g in gaps)  # resumed near the end of the warm-up
