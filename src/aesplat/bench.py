@@ -1,0 +1,630 @@
+"""`aesplat bench`: what accuracy costs in time, for every knob that trades one for the other (SPEC section 7).
+
+    aesplat bench --ckpt CKPT [--out DIR]
+
+For a trained model on evaluation scenes, each knob is swept on its own from a baseline (every SH band, the
+data's resolution, all Gaussians, fp32, the default renderer backend):
+
+    sh_degree         SH bands used when rendering (0 .. the model's degree)
+    input_size        side of the images fed to the model (multiples of 14); Gaussians rendered at full size
+    render_size       side of the rendered image, upsampled (bilinear) to full size for the metrics
+    keep_fraction     only the most opaque fraction of the Gaussians is rendered
+    min_opacity       Gaussians below an opacity threshold are dropped
+    precision         fp32, or bf16 autocast around the model forward (the renderer is always fp32)
+    backend           renderer backends available here (torch, torch compiled, gsplat with CUDA)
+
+Quality is PSNR (per image, then averaged) and SSIM against the ground-truth target images, rendered with
+the *predicted* target cameras. Time is milliseconds per scene for the model forward and for rendering the
+target views: median over repeats of each scene (warm-up runs excluded), then averaged over scenes.
+
+Writes DIR/bench.csv, DIR/BENCH.md (tables), DIR/accuracy_vs_time.png (quality against milliseconds, one
+series per knob) and DIR/bench.json (rows plus the machine and settings they were measured with).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import inspect
+import json
+import math
+import platform
+import statistics
+import time
+from collections.abc import Callable, Iterable, Sequence
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+from tqdm import tqdm
+
+from .export import drop_transparent, keep_most_opaque
+from .render import render
+from .train.metrics import psnr, ssim
+from .types import BatchedExample, BatchedViews, Gaussians
+
+PATCH = 14  # the encoder's patch size: model inputs are multiples of it
+
+# ---------------------------------------------------------------------------------------------------
+# Settings: one value per knob
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One point of a sweep: a value for every knob. ``None`` sizes mean the data's own resolution."""
+
+    sh_degree: int | None = None  # SH bands used at render time (None: all the model predicts)
+    input_size: int | None = None  # model input side, a multiple of 14
+    render_size: int | None = None  # render side; upsampled to the data's side for the metrics
+    keep_fraction: float = 1.0  # most opaque fraction of the Gaussians kept
+    min_opacity: float = 0.0  # Gaussians below this opacity dropped
+    precision: str = "fp32"  # "fp32" or "bf16" (autocast around the model forward)
+    backend: str = "torch"  # renderer backend
+    render_options: tuple[tuple[str, Any], ...] = ()  # extra keyword arguments of ``render``
+
+    def forward_key(self) -> tuple:
+        """Settings with the same key share the model forward (only rendering differs)."""
+        return (self.input_size, self.precision)
+
+
+@dataclass(frozen=True)
+class Point:
+    """A setting as one point of one knob's series."""
+
+    knob: str  # the knob this series varies
+    label: str  # its value in words, e.g. "SH 2", "112 px", "25 %"
+    setting: Setting
+
+
+def model_input_sizes(native: int, scales: Sequence[float]) -> list[int]:
+    """Input sides for ``scales`` of the native side: multiples of 14 (at least 28), unique, sorted."""
+    return sorted({max(2 * PATCH, round(native * s / PATCH) * PATCH) for s in scales} | {native})
+
+
+def default_sweep(
+    sh_degree: int,
+    native_size: int,
+    *,
+    backends: Sequence[str] = ("torch",),
+    input_scales: Sequence[float] = (0.5, 0.75, 1.0),
+    render_scales: Sequence[float] = (0.25, 0.5, 0.75, 1.0),
+    keep_fractions: Sequence[float] = (1.0, 0.5, 0.25, 0.1),
+    min_opacities: Sequence[float] = (0.0, 0.05, 0.2, 0.5),
+    precisions: Sequence[str] = ("fp32", "bf16"),
+    tile_sizes: Sequence[int] = (),
+    compiled: bool = False,
+    knobs: Iterable[str] | None = None,
+) -> tuple[Setting, list[Point]]:
+    """Every knob swept alone from the baseline ``Setting(backend=backends[0])``; returns (baseline, points).
+
+    tile_sizes: renderer tile sides to try (a speed-only knob: the image does not change); empty = skip.
+    compiled: add a "torch compiled" backend point (``render(..., compile=True)``).
+    knobs: restrict to these knob names (default: all).
+    """
+    base = Setting(backend=backends[0])
+    render_sizes = sorted({max(8, round(native_size * r)) for r in render_scales} | {native_size})
+
+    def own(size: int) -> int | None:  # None stands for the data's own side
+        return None if size == native_size else size
+
+    series: dict[str, list[Point]] = {
+        "sh_degree": [Point("sh_degree", f"SH {d}", replace(base, sh_degree=None if d == sh_degree else d))
+                      for d in range(sh_degree + 1)],
+        "input_size": [Point("input_size", f"{s} px", replace(base, input_size=own(s)))
+                       for s in model_input_sizes(native_size, input_scales)],
+        "render_size": [Point("render_size", f"{s} px", replace(base, render_size=own(s)))
+                        for s in render_sizes],
+        "keep_fraction": [Point("keep_fraction", f"{100 * f:g} %", replace(base, keep_fraction=f))
+                          for f in sorted(set(keep_fractions) | {1.0})],
+        "min_opacity": [Point("min_opacity", f"≥ {o:g}", replace(base, min_opacity=o))
+                        for o in sorted(set(min_opacities) | {0.0})],
+        "precision": [Point("precision", p, replace(base, precision=p)) for p in precisions],
+        "backend": [Point("backend", b, replace(base, backend=b)) for b in backends],
+        "tile_size": [Point("tile_size", f"tile {t}", replace(base, render_options=(("tile_size", t),)))
+                      for t in tile_sizes],
+    }  # fmt: skip
+    if compiled:
+        series["backend"].append(
+            Point(
+                "backend", "torch compiled", replace(base, backend="torch", render_options=(("compile", True),))
+            )
+        )
+    chosen = list(series) if knobs is None else list(knobs)
+    unknown = [k for k in chosen if k not in series]
+    if unknown:
+        raise ValueError(f"unknown knob(s) {unknown}; choose from {list(series)}")
+    return base, [point for knob in chosen for point in series[knob]]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Measuring
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def time_call(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: int) -> tuple[Any, float]:
+    """Run ``fn`` ``warmup`` times untimed, then ``repeats`` times; returns (last result, median ms)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    result = None
+    for _ in range(max(1, repeats)):
+        _sync(device)
+        start = time.perf_counter()
+        result = fn()
+        _sync(device)
+        times.append(1000.0 * (time.perf_counter() - start))
+    return result, statistics.median(times)
+
+
+def resize_views(views: BatchedViews, size: int | None) -> BatchedViews:
+    """Square images [B, V, 3, H, W] resized (antialiased bilinear) to ``size``; normalised intrinsics are
+    resolution-free and stay as they are."""
+    if size is None or size == views.images.shape[-1]:
+        return views
+    b, v = views.images.shape[:2]
+    flat = views.images.flatten(0, 1)
+    resized = F.interpolate(flat, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+    return replace(views, images=resized.clamp(0, 1).unflatten(0, (b, v)))
+
+
+def select_gaussians(gaussians: Gaussians, setting: Setting) -> Gaussians:
+    """Apply the Gaussian-count knobs of ``setting`` to one scene's Gaussians (B = 1)."""
+    if setting.keep_fraction < 1.0:
+        gaussians = keep_most_opaque(gaussians, setting.keep_fraction)
+    if setting.min_opacity > 0.0:
+        gaussians = drop_transparent(gaussians, setting.min_opacity)
+    return gaussians
+
+
+@dataclass
+class Row:
+    """Measured figures of one point, averaged over the scenes."""
+
+    knob: str
+    label: str
+    psnr: float = math.nan
+    ssim: float = math.nan
+    forward_ms: float = math.nan
+    render_ms: float = math.nan
+    total_ms: float = math.nan
+    gaussians: float = math.nan  # mean number rendered per scene
+    baseline: bool = False
+    skipped: str = ""  # why this point could not be measured here
+    setting: dict = field(default_factory=dict)
+
+
+@dataclass
+class _Forward:
+    """Model outputs of one scene at one forward key, with the median forward time."""
+
+    gaussians: Gaussians
+    extrinsics: Tensor  # [1, Vt, 4, 4] predicted target cameras
+    intrinsics: Tensor  # [1, Vt, 3, 3]
+    ms: float
+
+
+class Bench:
+    """Measures points of a sweep on a fixed list of single-scene examples, sharing model forwards.
+
+    model: called as ``model(context_images, target_images)`` (see aesplat.model), in eval mode.
+    scenes: BatchedExample with B = 1 each, float images on ``device``, square images of one size.
+    render_kwargs: keyword arguments of ``render`` every point shares (background, tile_size, ...); a
+        setting's own ``render_options`` override them.
+    """
+
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        scenes: Sequence[BatchedExample],
+        device: torch.device,
+        *,
+        repeats: int = 3,
+        warmup: int = 1,
+        render_kwargs: dict | None = None,
+        progress: bool = True,
+    ) -> None:
+        if not scenes:
+            raise ValueError("the benchmark needs at least one evaluation scene")
+        self.model, self.scenes, self.device = model, list(scenes), device
+        self.repeats, self.warmup, self.progress = repeats, warmup, progress
+        self.render_kwargs = dict(render_kwargs or {})
+        self.native = scenes[0].target.images.shape[-1]
+        self._forwards: dict[tuple, list[_Forward]] = {}
+
+    @torch.no_grad()
+    def forward(self, setting: Setting) -> list[_Forward]:
+        """Model outputs (and forward times) of every scene for the forward key of ``setting`` (cached)."""
+        key = setting.forward_key()
+        if key in self._forwards:
+            return self._forwards[key]
+        if setting.precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be 'fp32' or 'bf16', got {setting.precision!r}")
+        autocast = (torch.autocast(self.device.type, dtype=torch.bfloat16) if setting.precision == "bf16"
+                    else nullcontext())  # fmt: skip
+        results = []
+        for i, scene in enumerate(self.scenes):
+            ctx = resize_views(scene.context, setting.input_size).images
+            tgt = resize_views(scene.target, setting.input_size).images
+
+            def run(ctx: Tensor = ctx, tgt: Tensor = tgt):
+                with autocast:
+                    return self.model(ctx, tgt)
+
+            out, ms = time_call(run, self.device, self.repeats, self.warmup if i == 0 else 0)
+            vc = ctx.shape[1]
+            results.append(
+                _Forward(
+                    gaussians=out.gaussians.to(dtype=torch.float32),
+                    extrinsics=out.extrinsics[:, vc:].float(),
+                    intrinsics=out.intrinsics[:, vc:].float(),
+                    ms=ms,
+                )
+            )
+        self._forwards[key] = results
+        return results
+
+    @torch.no_grad()
+    def measure(self, point: Point) -> Row:
+        """PSNR, SSIM and milliseconds of one point; a failing setting becomes a skipped row with the reason."""
+        s = point.setting
+        row = Row(point.knob, point.label, setting=asdict(s))
+        try:
+            forwards = self.forward(s)
+            psnrs, ssims, render_ms, counts = [], [], [], []
+            for i, (scene, fwd) in enumerate(zip(self.scenes, forwards)):
+                size = s.render_size or self.native
+
+                options = {**self.render_kwargs, **dict(s.render_options), "backend": s.backend}
+
+                def run(fwd: _Forward = fwd, size: int = size, options: dict = options):
+                    gaussians = select_gaussians(fwd.gaussians, s)
+                    out = render(gaussians, fwd.extrinsics, fwd.intrinsics, size, size, sh_degree=s.sh_degree,
+                                 **options)  # fmt: skip
+                    return out, gaussians.num_gaussians
+
+                (out, count), ms = time_call(run, self.device, self.repeats, self.warmup if i == 0 else 0)
+                color = out.color[0]  # [Vt, 3, size, size]
+                if size != self.native:
+                    color = F.interpolate(color, size=(self.native,) * 2, mode="bilinear", align_corners=False)
+                target = scene.target.images[0]
+                psnrs += psnr(color, target).tolist()
+                ssims += ssim(color, target).tolist()
+                render_ms.append(ms)
+                counts.append(count)
+        except (RuntimeError, ValueError, TypeError, NotImplementedError, ImportError) as err:
+            row.skipped = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:200]
+            return row
+        row.psnr, row.ssim = statistics.fmean(psnrs), statistics.fmean(ssims)
+        row.forward_ms = statistics.fmean(f.ms for f in forwards)
+        row.render_ms = statistics.fmean(render_ms)
+        row.total_ms = row.forward_ms + row.render_ms
+        row.gaussians = statistics.fmean(counts)
+        return row
+
+    def run(self, points: Sequence[Point], baseline: Setting) -> list[Row]:
+        """Measure every point; a setting shared by several series (the baseline) is measured once."""
+        done: dict[Setting, Row] = {}
+        rows = []
+        for point in tqdm(points, desc="aesplat bench", unit="setting", disable=not self.progress):
+            if point.setting not in done:
+                done[point.setting] = self.measure(point)
+            row = replace(done[point.setting], knob=point.knob, label=point.label)
+            row.baseline = point.setting == baseline
+            rows.append(row)
+        return rows
+
+
+def single_scenes(batches: Iterable[BatchedExample], limit: int, device: torch.device) -> list[BatchedExample]:
+    """Split loader batches into at most ``limit`` single-scene examples (B = 1), float images on ``device``."""
+    scenes: list[BatchedExample] = []
+    for batch in batches:
+        for b in range(batch.batch_size):
+            if len(scenes) >= limit:
+                return scenes
+
+            def pick(t: Tensor | None, b: int = b) -> Tensor | None:
+                return None if t is None else t[b : b + 1]
+
+            one = BatchedExample(
+                context=batch.context.apply(pick),
+                target=batch.target.apply(pick),
+                scene=batch.scene[b : b + 1],
+                overlap=pick(batch.overlap),
+                gap=pick(batch.gap),
+                dataset=batch.dataset[b : b + 1],
+            )
+            scenes.append(one.to(device).float_images())
+    return scenes
+
+
+# ---------------------------------------------------------------------------------------------------
+# Reporting
+
+
+CSV_FIELDS = ["knob", "label", "psnr", "ssim", "forward_ms", "render_ms", "total_ms", "gaussians", "baseline",
+              "skipped"]  # fmt: skip
+
+KNOB_TITLES = {
+    "sh_degree": "SH degree at render",
+    "input_size": "model input resolution",
+    "render_size": "render resolution",
+    "keep_fraction": "Gaussians kept (most opaque)",
+    "min_opacity": "Gaussians kept (opacity threshold)",
+    "precision": "model precision",
+    "backend": "renderer backend",
+    "tile_size": "renderer tile size",
+}
+
+
+def write_csv(rows: Sequence[Row], path: Path) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: getattr(row, k) for k in CSV_FIELDS})
+
+
+def markdown_tables(rows: Sequence[Row], meta: dict) -> str:
+    """One markdown table per knob, with PSNR change and speed-up against the baseline."""
+    base = next((r for r in rows if r.baseline and not r.skipped), None)
+    lines = [
+        "# Accuracy versus time",
+        "",
+        f"Checkpoint `{meta.get('ckpt', '?')}`, {meta.get('scenes', '?')} evaluation scenes, "
+        f"{meta.get('device', '?')}, torch {meta.get('torch', '?')} with {meta.get('threads', '?')} threads; "
+        f"median of {meta.get('repeats', '?')} repeats per scene after {meta.get('warmup', '?')} warm-up "
+        "run(s). "
+        "Milliseconds are per scene (model forward on context + target views; rendering of the target views).",
+        "",
+    ]
+    if base is not None:
+        lines += [
+            f"Baseline: all SH bands, {meta.get('native_size', '?')} px, all Gaussians, fp32, "
+            f"`{base.setting.get('backend')}` backend — PSNR {base.psnr:.2f} dB, SSIM {base.ssim:.4f}, "
+            f"{base.total_ms:.1f} ms ({base.forward_ms:.1f} forward + {base.render_ms:.1f} render).",
+            "",
+        ]
+    for knob in dict.fromkeys(r.knob for r in rows):
+        lines += [
+            f"## {KNOB_TITLES.get(knob, knob)}",
+            "",
+            "| setting | PSNR (dB) | Δ PSNR | SSIM | forward ms | render ms | total ms | speed-up "
+            "| Gaussians |",
+            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        ]
+        for r in (r for r in rows if r.knob == knob):
+            label = f"**{r.label}**" if r.baseline else r.label
+            if r.skipped:
+                lines.append(f"| {label} | not measured here: {r.skipped} | | | | | | | |")
+                continue
+            dpsnr = f"{r.psnr - base.psnr:+.2f}" if base else ""
+            speed = f"{base.total_ms / r.total_ms:.2f}×" if base else ""
+            lines.append(
+                f"| {label} | {r.psnr:.2f} | {dpsnr} | {r.ssim:.4f} | {r.forward_ms:.1f} | {r.render_ms:.1f} | "
+                f"{r.total_ms:.1f} | {speed} | {r.gaussians:,.0f} |"
+            )
+        lines.append("")
+    lines.append("Bold: the baseline setting. Plot: `accuracy_vs_time.png`; raw figures: `bench.csv`.")
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: Sequence[Row], path: Path) -> None:
+    """Quality against milliseconds: an overview (PSNR vs total ms, every knob), then one panel per knob
+    (PSNR, and SSIM dashed on the right axis, vs total ms; points joined in the knob's own order)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    knobs = [k for k in dict.fromkeys(r.knob for r in rows) if any(r.knob == k and not r.skipped for r in rows)]
+    cols = 3
+    nrows = math.ceil((len(knobs) + 1) / cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(5.6 * cols, 4.2 * nrows), squeeze=False)
+    flat = list(axes.flat)
+    base = next((r for r in rows if r.baseline and not r.skipped), None)
+    overview = flat[0]
+    for i, knob in enumerate(knobs):
+        pts = [r for r in rows if r.knob == knob and not r.skipped]
+        xs, psnrs, ssims = [r.total_ms for r in pts], [r.psnr for r in pts], [r.ssim for r in pts]
+        title = KNOB_TITLES.get(knob, knob)
+        overview.plot(xs, psnrs, marker="o", color=f"C{i}", label=title, alpha=0.85)
+        ax = flat[i + 1]
+        ax.plot(xs, psnrs, marker="o", color=f"C{i}")
+        for r, x, y in zip(pts, xs, psnrs):
+            ax.annotate(r.label, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        twin = ax.twinx()
+        twin.plot(xs, ssims, marker="s", linestyle="--", color="0.5", alpha=0.7)
+        twin.set_ylabel("SSIM (dashed)", color="0.4")
+        _min_span(ax, psnrs, 1.0)  # flat series stay flat instead of magnifying 1e-6 dB differences
+        _min_span(twin, ssims, 0.02)
+        ax.set_title(title)
+        ax.set_xlabel("total ms per scene")
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(True, alpha=0.3)
+    if base is not None:
+        overview.scatter([base.total_ms], [base.psnr], marker="*", s=220, color="k", zorder=5, label="baseline")
+    overview.set_xscale("log")
+    overview.set_title("all knobs")
+    overview.set_xlabel("total ms per scene (forward + render)")
+    overview.set_ylabel("PSNR (dB)")
+    overview.grid(True, which="both", alpha=0.3)
+    overview.legend(fontsize=7, loc="best")
+    for ax in flat[len(knobs) + 1 :]:
+        ax.set_visible(False)
+    fig.suptitle("aesplat: accuracy versus time (each knob varied alone from the baseline)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _min_span(ax, values: Sequence[float], span: float) -> None:
+    """Give a y axis at least ``span`` of range around ``values``, without offset notation."""
+    lo, hi = min(values), max(values)
+    if hi - lo < span:
+        mid = 0.5 * (lo + hi)
+        ax.set_ylim(mid - 0.6 * span, mid + 0.6 * span)
+    ax.ticklabel_format(axis="y", useOffset=False)
+
+
+def write_report(rows: Sequence[Row], out_dir: str | Path, meta: dict) -> dict[str, Path]:
+    """Write bench.csv, BENCH.md, accuracy_vs_time.png and bench.json under ``out_dir``; returns the paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {name: out / name for name in ("bench.csv", "BENCH.md", "accuracy_vs_time.png", "bench.json")}
+    write_csv(rows, paths["bench.csv"])
+    paths["BENCH.md"].write_text(markdown_tables(rows, meta))
+    plot(rows, paths["accuracy_vs_time.png"])
+    paths["bench.json"].write_text(json.dumps({"meta": meta, "rows": [asdict(r) for r in rows]}, indent=1))
+    return paths
+
+
+def machine_meta(device: torch.device) -> dict:
+    """Where the figures were measured."""
+    name = torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or "cpu")
+    return {"device": f"{device.type} ({name})", "torch": torch.__version__, "threads": torch.get_num_threads()}
+
+
+# ---------------------------------------------------------------------------------------------------
+# Command line
+
+
+def _floats(text: str) -> list[float]:
+    return [float(x) for x in text.split(",") if x.strip()]
+
+
+def _names(text: str) -> list[str]:
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="aesplat bench",
+        description="Accuracy versus time: sweep every quality knob of a trained model on evaluation scenes "
+        "and write tables (markdown, CSV) and a plot of PSNR/SSIM against milliseconds.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--ckpt", required=True, help="checkpoint written by `aesplat fit`")
+    parser.add_argument("--out", default=None, help="output directory (default: RUN_DIR/bench next to the "
+                        "checkpoint's run, else outputs/bench)")  # fmt: skip
+    parser.add_argument("--data-root", default=None, help="shard folder with test/*.tar (default: the run's "
+                        "data.root from its config.yaml)")  # fmt: skip
+    parser.add_argument("--image-size", type=int, default=None, help="evaluation image side (default: the "
+                        "run's data.image_size)")  # fmt: skip
+    parser.add_argument("--scenes", type=int, default=8, help="evaluation scenes measured")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per scene and setting (median)")
+    parser.add_argument("--warmup", type=int, default=1, help="untimed runs before each setting")
+    parser.add_argument("--knobs", type=_names, default=None,
+                        help=f"comma-separated subset of {', '.join(KNOB_TITLES)} (default: all)")  # fmt: skip
+    parser.add_argument(
+        "--input-scales",
+        type=_floats,
+        default=[0.5, 0.75, 1.0],
+        help="model input sides as fractions of the data's (rounded to multiples of 14)",
+    )
+    parser.add_argument(
+        "--render-scales",
+        type=_floats,
+        default=[0.25, 0.5, 0.75, 1.0],
+        help="render sides as fractions of the data's",
+    )
+    parser.add_argument(
+        "--keep-fractions",
+        type=_floats,
+        default=[1.0, 0.5, 0.25, 0.1],
+        help="fractions of the most opaque Gaussians kept",
+    )
+    parser.add_argument(
+        "--min-opacities",
+        type=_floats,
+        default=[0.0, 0.05, 0.2, 0.5],
+        help="opacity thresholds below which Gaussians are dropped",
+    )
+    parser.add_argument("--precisions", type=_names, default=["fp32", "bf16"], help="model precisions")
+    parser.add_argument("--backends", type=_names, default=None,
+                        help="renderer backends (default: torch, plus gsplat when CUDA and gsplat are here; "
+                        "the first is the baseline's)")  # fmt: skip
+    parser.add_argument("--tile-sizes", type=_floats, default=[8, 16], help="renderer tile sides")
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="also measure the torch backend with torch.compile (cold compiles take minutes)",
+    )
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, ... (auto: cuda if available)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def evaluation_scenes(loaded, data_root: str | None, image_size: int | None, limit: int,
+                      device: torch.device) -> list[BatchedExample]:  # fmt: skip
+    """The first ``limit`` test scenes of the run's data set, one per example, on ``device``."""
+    from .data import DataModule
+
+    data = dict(loaded.data or {})
+    if data_root is not None:
+        data["root"] = data_root
+    if "root" not in data:
+        raise SystemExit("aesplat bench: no config.yaml beside the checkpoint's run; give --data-root DIR")
+    if image_size is not None:
+        data["image_size"] = image_size
+    data.update(num_workers=0, eval_batch_size=1)
+    known = set(inspect.signature(DataModule).parameters)
+    datamodule = DataModule(**{k: v for k, v in data.items() if k in known})
+    try:
+        stream = datamodule.eval_dataset("test")
+    except FileNotFoundError as err:
+        raise SystemExit(f"aesplat bench: {err}") from err
+    return single_scenes(stream, limit, device)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``aesplat bench`` (see ``--help``)."""
+    from .predict import load_checkpoint, resolve_device
+    from .render import gsplat_available
+
+    args = build_parser().parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+    loaded = load_checkpoint(args.ckpt, device)
+    scenes = evaluation_scenes(loaded, args.data_root, args.image_size, args.scenes, device)
+    if not scenes:
+        raise SystemExit("aesplat bench: the test split holds no scenes")
+    native = scenes[0].target.images.shape[-1]
+    backends = args.backends or (
+        ["gsplat", "torch"] if gsplat_available() and device.type == "cuda" else ["torch"]
+    )
+    baseline, points = default_sweep(
+        loaded.sh_degree, native, backends=backends, input_scales=args.input_scales,
+        render_scales=args.render_scales, keep_fractions=args.keep_fractions, min_opacities=args.min_opacities,
+        precisions=args.precisions, tile_sizes=[int(t) for t in args.tile_sizes], compiled=args.compile,
+        knobs=args.knobs,
+    )  # fmt: skip
+    render_kwargs = {**loaded.render.get("options", {}), "background": loaded.background.to(device)}
+    render_kwargs.pop("compile", None)  # compiling is a knob of its own here
+    bench = Bench(loaded.model, scenes, device, repeats=args.repeats, warmup=args.warmup,
+                  render_kwargs=render_kwargs, progress=not args.no_progress)  # fmt: skip
+    rows = bench.run(points, baseline)
+    if args.out is not None:
+        out = Path(args.out)
+    elif loaded.data is not None:
+        out = loaded.path.parent.parent / "bench"
+    else:
+        out = Path("outputs/bench")
+    meta = {
+        **machine_meta(device), "ckpt": str(loaded.path), "scenes": len(scenes), "native_size": native,
+        "repeats": args.repeats, "warmup": args.warmup, "sh_degree": loaded.sh_degree,
+        "model_size": loaded.net.get("size"), "appearance": loaded.net.get("appearance"),
+    }  # fmt: skip
+    paths = write_report(rows, out, meta)
+    print(paths["BENCH.md"].read_text())
+    print(f"aesplat bench: wrote {', '.join(str(p) for p in paths.values())}")
+    return 0

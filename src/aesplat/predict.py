@@ -1,0 +1,416 @@
+"""`aesplat predict`: unposed images in; Gaussians (PLY), cameras, re-renders, depth and a novel-view path out.
+
+    aesplat predict --ckpt CKPT --out DIR IMAGE IMAGE [IMAGE ...]
+
+writes
+
+    DIR/gaussians.ply     one Gaussian per input pixel, reference 3DGS layout (see aesplat.export.ply)
+    DIR/cameras.json      predicted camera of every input view (and of every novel frame)
+    DIR/inputs/           the images as the model saw them (resized, centre-cropped)
+    DIR/renders/          the input views re-rendered from the Gaussians with the predicted cameras
+    DIR/depth/            predicted depth per input view: colour-mapped PNG and raw float32 .npy
+    DIR/novel/            frames along a path through the predicted input cameras, and trajectory.gif
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, UnidentifiedImageError
+from torch import Tensor
+from tqdm import tqdm
+
+from .export import VIEWER_MAX_SH_DEGREE, drop_transparent, write_ply
+from .geometry import (
+    denormalize_intrinsics,
+    focal_to_fov,
+    invert_pose,
+    make_pose,
+    matrix_to_quat,
+    quat_to_matrix,
+)
+from .render import render
+from .types import Gaussians
+
+PATCH = 14  # the encoder's patch size: the model's image side must be a multiple of it
+
+
+# ---------------------------------------------------------------------------------------------------
+# Images in, images out
+
+
+def load_image(path: str | Path, size: int) -> Tensor:
+    """Read an image, resize its shorter side to ``size``, centre-crop a square -> [3, size, size] in [0, 1].
+
+    Raises ValueError naming the file when it cannot be read as an image.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"input image {str(path)!r} does not exist (or is not a file)")
+    try:
+        with Image.open(path) as img:
+            img = img.convert("RGB")
+    except (UnidentifiedImageError, OSError) as err:
+        raise ValueError(f"cannot read {str(path)!r} as an image ({err}); give PNG/JPEG/... files") from err
+    w, h = img.size
+    scale = size / min(w, h)
+    rw, rh = max(size, round(w * scale)), max(size, round(h * scale))
+    img = img.resize((rw, rh), Image.Resampling.LANCZOS)
+    left, top = (rw - size) // 2, (rh - size) // 2
+    img = img.crop((left, top, left + size, top + size))
+    return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float() / 255.0
+
+
+def save_image(image: Tensor, path: Path) -> None:
+    """Write a [3, H, W] float image in [0, 1] as PNG."""
+    array = (image.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(array).save(path)
+
+
+def colorize_depth(depth: Tensor, cmap: str = "turbo") -> np.ndarray:
+    """Depth [H, W] -> colour-mapped uint8 [H, W, 3]; near is warm, far is cool (robust 2-98 % range)."""
+    from matplotlib import colormaps
+
+    d = depth.detach().float().cpu()
+    valid = d > 0
+    if not bool(valid.any()):
+        return np.zeros((*d.shape, 3), dtype=np.uint8)
+    lo, hi = torch.quantile(d[valid], torch.tensor([0.02, 0.98])).tolist()
+    t = ((hi - d) / max(hi - lo, 1e-8)).clamp(0, 1)  # 1 = near
+    rgb = colormaps[cmap](t.numpy())[..., :3]
+    rgb[~valid.numpy()] = 0.0
+    return (rgb * 255).round().astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Cameras
+
+
+def slerp(q0: Tensor, q1: Tensor, t: Tensor) -> Tensor:
+    """Spherical interpolation of unit quaternions (w, x, y, z): q0, q1 [F, 4] at times t [F] -> [F, 4]."""
+    dot = (q0 * q1).sum(-1, keepdim=True)  # [F, 1]
+    q1 = torch.where(dot < 0, -q1, q1)  # the shorter way round
+    theta = torch.acos(dot.abs().clamp(max=1.0))
+    t = t[:, None]
+    near = theta < 1e-4  # nearly equal rotations: linear interpolation, no 0 / 0
+    sin = torch.where(near, torch.ones_like(theta), torch.sin(theta))
+    w0 = torch.where(near, 1 - t, torch.sin((1 - t) * theta) / sin)
+    w1 = torch.where(near, t, torch.sin(t * theta) / sin)
+    q = w0 * q0 + w1 * q1
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def interpolate_cameras(extrinsics: Tensor, intrinsics: Tensor, frames: int) -> tuple[Tensor, Tensor]:
+    """A path through V cameras in order: extrinsics [V, 4, 4] (camera-to-world), intrinsics [V, 3, 3].
+
+    Rotations are slerped, centres and intrinsics interpolated linearly, ``frames`` poses in all (the first
+    and last are the first and last input cameras). Returns extrinsics [F, 4, 4] and intrinsics [F, 3, 3].
+    """
+    v = extrinsics.shape[0]
+    if v < 2:
+        raise ValueError("a camera path needs at least two cameras")
+    if frames < 2:
+        raise ValueError(f"a camera path needs at least two frames, got {frames}")
+    s = torch.linspace(0, v - 1, frames, dtype=extrinsics.dtype, device=extrinsics.device)  # [F]
+    seg = s.floor().long().clamp(max=v - 2)
+    t = s - seg  # [F] position within the segment
+    quats = matrix_to_quat(extrinsics[:, :3, :3])  # [V, 4]
+    rots = quat_to_matrix(slerp(quats[seg], quats[seg + 1], t))  # [F, 3, 3]
+    centres = extrinsics[:, :3, 3]
+    tt = t[:, None]
+    trans = (1 - tt) * centres[seg] + tt * centres[seg + 1]  # [F, 3]
+    tk = t[:, None, None]
+    intr = (1 - tk) * intrinsics[seg] + tk * intrinsics[seg + 1]  # [F, 3, 3]
+    return make_pose(rots, trans), intr
+
+
+def compact_json(obj: object) -> str:
+    """JSON with two-space indents but each innermost list of numbers (a matrix row) on one line."""
+    text = json.dumps(obj, indent=2)
+    numbers = re.compile(r"\[([-0-9.eE+,\s]+)\]")
+    return numbers.sub(lambda m: "[" + ", ".join(x.strip() for x in m.group(1).split(",")) + "]", text)
+
+
+def camera_record(extrinsics: Tensor, intrinsics: Tensor, height: int, width: int) -> dict:
+    """A JSON-able description of one camera: c2w / w2c 4x4, normalised and pixel 3x3 intrinsics, FOVs."""
+    k_pix = denormalize_intrinsics(intrinsics, height, width)
+    fov_x = focal_to_fov(intrinsics[0, 0]).item()
+    fov_y = focal_to_fov(intrinsics[1, 1]).item()
+    return {
+        "camera_to_world": extrinsics.tolist(),
+        "world_to_camera": invert_pose(extrinsics).tolist(),
+        "intrinsics_normalized": intrinsics.tolist(),
+        "intrinsics_pixels": k_pix.tolist(),
+        "width": width,
+        "height": height,
+        "fov_x_deg": math.degrees(fov_x),
+        "fov_y_deg": math.degrees(fov_y),
+    }
+
+
+# ---------------------------------------------------------------------------------------------------
+# Checkpoints
+
+
+@dataclass(frozen=True)
+class LoadedCheckpoint:
+    """A trained model restored from an ``aesplat fit`` checkpoint, with what the run was configured with.
+
+    net     the checkpoint's ``net`` hyper-parameters (arguments of ``build_model``)
+    render  the checkpoint's ``render`` hyper-parameters (backend, background, options)
+    data    the ``data`` section of the run's config.yaml (None when the file is not beside the checkpoint)
+    """
+
+    model: torch.nn.Module
+    net: dict
+    render: dict
+    data: dict | None
+    path: Path
+
+    @property
+    def sh_degree(self) -> int:
+        return int(self.model.cfg.sh_degree)
+
+    @property
+    def image_size(self) -> int:
+        """The square side the model was trained at (the run's ``data.image_size``; 224 if unknown)."""
+        return int((self.data or {}).get("image_size", 224))
+
+    @property
+    def background(self) -> Tensor:
+        """Render background colour [3] the run evaluated with."""
+        return torch.tensor(self.render.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32)
+
+
+def run_config(ckpt: Path) -> dict | None:
+    """The run's config.yaml: ``aesplat fit`` writes it in the run directory, the checkpoint's grandparent."""
+    from omegaconf import OmegaConf
+
+    for folder in (ckpt.parent, ckpt.parent.parent):
+        if (folder / "config.yaml").is_file():
+            return OmegaConf.to_container(OmegaConf.load(folder / "config.yaml"), resolve=True)
+    return None
+
+
+def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> LoadedCheckpoint:
+    """Restore the model of an ``aesplat fit`` checkpoint in eval mode on ``device`` (no Lightning, no LPIPS).
+
+    The model is rebuilt from the checkpoint's ``net`` hyper-parameters without its pretrained-weights file
+    (the trained weights come from the checkpoint), then the ``model.*`` entries of the state dict are loaded
+    strictly.
+    """
+    from .model import build_model
+
+    path = Path(path)
+    if not path.is_file():
+        raise SystemExit(
+            f"checkpoint {str(path)!r} not found (aesplat fit writes RUN_DIR/checkpoints/last.ckpt)"
+        )
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    hparams = ckpt.get("hyper_parameters") or {}
+    if "net" not in hparams or "state_dict" not in ckpt:
+        raise SystemExit(f"{str(path)!r} is not an aesplat checkpoint (no 'net' hyper-parameters / state_dict)")
+    net = dict(hparams["net"])
+    model = build_model(size=net["size"], appearance=net["appearance"], sh_degree=net["sh_degree"],
+                        near=net["near"], far=net["far"], weights=None, **net.get("options", {}))  # fmt: skip
+    state = {k[len("model.") :]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
+    model.load_state_dict(state, strict=True)
+    model.to(device).eval()
+    data = (run_config(path) or {}).get("data")
+    return LoadedCheckpoint(
+        model=model, net=net, render=dict(hparams.get("render") or {}), data=data, path=path
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# Prediction
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """What one forward pass gives for one scene (B = 1).
+
+    gaussians   Gaussians [1, N, ...], N = V * H * W
+    extrinsics  [V, 4, 4] camera-to-world in view 0's frame
+    intrinsics  [V, 3, 3] normalised
+    depth       [V, H, W] predicted z-depth
+    """
+
+    gaussians: Gaussians
+    extrinsics: Tensor
+    intrinsics: Tensor
+    depth: Tensor
+
+
+@torch.no_grad()
+def predict_scene(model: torch.nn.Module, images: Tensor) -> Prediction:
+    """Run the model on context images [V, 3, H, W] (float in [0, 1], on the model's device)."""
+    out = model(images[None], None)
+    return Prediction(
+        gaussians=out.gaussians.to(dtype=torch.float32),
+        extrinsics=out.extrinsics[0].float(),
+        intrinsics=out.intrinsics[0].float(),
+        depth=out.depth[0].float(),
+    )
+
+
+@torch.no_grad()
+def render_views(
+    gaussians: Gaussians,
+    extrinsics: Tensor,  # [F, 4, 4]
+    intrinsics: Tensor,  # [F, 3, 3]
+    size: int,
+    render_options: dict | None = None,
+    chunk: int = 4,
+    progress: tqdm | None = None,
+) -> Tensor:
+    """Render F views of one scene in chunks of ``chunk`` -> colour [F, 3, size, size].
+
+    render_options: keyword arguments of ``aesplat.render.render`` (backend, background, tile_size, ...).
+    """
+    frames = []
+    for start in range(0, extrinsics.shape[0], chunk):
+        ext, intr = extrinsics[None, start : start + chunk], intrinsics[None, start : start + chunk]
+        out = render(gaussians, ext, intr, size, size, **(render_options or {}))
+        frames.append(out.color[0])
+        if progress is not None:
+            progress.update(out.color.shape[1])
+    return torch.cat(frames)
+
+
+def write_outputs(
+    out_dir: Path,
+    names: list[str],
+    images: Tensor,  # [V, 3, S, S]
+    pred: Prediction,
+    *,
+    novel_frames: int,
+    ply_sh_degree: int | None,
+    min_opacity: float,
+    render_options: dict | None = None,
+    progress: bool = True,
+) -> dict:
+    """Render and write every output of ``aesplat predict`` under ``out_dir``; returns the cameras record."""
+    v, _, size, _ = images.shape
+    steps = 2 * v + novel_frames + 2  # inputs+depth, re-renders, novel frames, PLY, cameras
+    bar = tqdm(total=steps, desc="aesplat predict", unit="step", disable=not progress)
+    for i in range(v):
+        save_image(images[i], out_dir / "inputs" / f"{i:02d}_{names[i]}.png")
+        (out_dir / "depth").mkdir(parents=True, exist_ok=True)
+        np.save(out_dir / "depth" / f"{i:02d}_{names[i]}.npy", pred.depth[i].cpu().numpy().astype(np.float32))
+        Image.fromarray(colorize_depth(pred.depth[i])).save(out_dir / "depth" / f"{i:02d}_{names[i]}.png")
+        bar.update(1)
+    renders = render_views(pred.gaussians, pred.extrinsics, pred.intrinsics, size, render_options, progress=bar)
+    for i in range(v):
+        save_image(renders[i], out_dir / "renders" / f"{i:02d}_{names[i]}.png")
+    novel_ext, novel_int = interpolate_cameras(pred.extrinsics, pred.intrinsics, novel_frames)
+    novel = render_views(pred.gaussians, novel_ext, novel_int, size, render_options, progress=bar)
+    for f in range(novel_frames):
+        save_image(novel[f], out_dir / "novel" / f"{f:03d}.png")
+    frames = [Image.open(out_dir / "novel" / f"{f:03d}.png") for f in range(novel_frames)]
+    frames += frames[-2:0:-1]  # there and back again
+    frames[0].save(
+        out_dir / "novel" / "trajectory.gif", save_all=True, append_images=frames[1:], duration=80, loop=0
+    )
+
+    gaussians = pred.gaussians if min_opacity <= 0 else drop_transparent(pred.gaussians, min_opacity)
+    degree = min(gaussians.sh_degree, VIEWER_MAX_SH_DEGREE) if ply_sh_degree is None else ply_sh_degree
+    write_ply(out_dir / "gaussians.ply", gaussians, sh_degree=degree)
+    bar.update(1)
+    cameras = {
+        "convention": "OpenCV axes (x right, y down, z forward); world = the first input view's camera frame; "
+        "intrinsics_normalized has fx, cx divided by width and fy, cy by height",
+        "views": [
+            {"image": names[i], **camera_record(pred.extrinsics[i].cpu(), pred.intrinsics[i].cpu(), size, size)}
+            for i in range(v)
+        ],
+        "novel": [
+            camera_record(novel_ext[f].cpu(), novel_int[f].cpu(), size, size) for f in range(novel_frames)
+        ],
+        "gaussians": {"count": gaussians.num_gaussians, "ply_sh_degree": degree, "min_opacity": min_opacity},
+    }
+    (out_dir / "cameras.json").write_text(compact_json(cameras))
+    bar.update(1)
+    bar.close()
+    return cameras
+
+
+# ---------------------------------------------------------------------------------------------------
+# Command line
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="aesplat predict",
+        description="Predict cameras and 3D Gaussians from unposed images with a trained checkpoint; write a "
+        "3DGS PLY, the cameras, re-renders of the inputs, depth maps and a short novel-view path.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="two or more images of one scene (any size)")
+    parser.add_argument("--ckpt", required=True, help="checkpoint written by `aesplat fit` (last.ckpt / best)")
+    parser.add_argument("--out", required=True, help="output directory (created if missing)")
+    parser.add_argument("--size", type=int, default=None,
+                        help="square side the images are resized and centre-cropped to, a multiple of 14 "
+                        "(default: the image size the checkpoint was trained at)")  # fmt: skip
+    parser.add_argument("--novel-frames", type=int, default=30, help="frames of the novel-view path")
+    parser.add_argument("--ply-sh-degree", type=int, default=None,
+                        help="SH bands written to the PLY (default: min(model degree, 3), what common 3DGS "
+                        "viewers read)")  # fmt: skip
+    parser.add_argument("--min-opacity", type=float, default=0.0,
+                        help="leave Gaussians below this opacity out of the PLY")  # fmt: skip
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, ... (auto: cuda if available)")
+    parser.add_argument("--backend", default="auto", help="renderer backend: auto, torch or gsplat")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> cuda when available, else cpu; anything else as given (checked)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit(f"aesplat predict: --device {name} asked for CUDA, which is not available here")
+    return device
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``aesplat predict`` (see ``--help``)."""
+    args = build_parser().parse_args(argv)
+    if len(args.images) < 2:
+        raise SystemExit("aesplat predict: give at least two images of the same scene")
+    device = resolve_device(args.device)
+    loaded = load_checkpoint(args.ckpt, device)
+    size = args.size or loaded.image_size
+    if size % PATCH != 0:
+        raise SystemExit(f"aesplat predict: --size {size} is not a multiple of the patch size {PATCH}")
+    model_degree = loaded.sh_degree
+    if args.ply_sh_degree is not None and not 0 <= args.ply_sh_degree <= model_degree:
+        raise SystemExit(f"aesplat predict: --ply-sh-degree must be in 0..{model_degree} for this checkpoint")
+    if args.novel_frames < 2:
+        raise SystemExit("aesplat predict: --novel-frames must be at least 2")
+    try:
+        images = torch.stack([load_image(p, size) for p in args.images]).to(device)
+    except ValueError as err:
+        raise SystemExit(f"aesplat predict: {err}") from err
+    names = [Path(p).stem for p in args.images]
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pred = predict_scene(loaded.model, images)
+    options = {**loaded.render.get("options", {}), "backend": args.backend,
+               "background": loaded.background.to(device)}  # fmt: skip
+    write_outputs(
+        out_dir, names, images, pred, novel_frames=args.novel_frames, ply_sh_degree=args.ply_sh_degree,
+        min_opacity=args.min_opacity, render_options=options, progress=not args.no_progress,
+    )  # fmt: skip
+    print(f"aesplat predict: wrote {out_dir / 'gaussians.ply'} ({pred.gaussians.num_gaussians:,} Gaussians), "
+          f"cameras.json, inputs/, renders/, depth/, novel/ under {out_dir}")  # fmt: skip
+    return 0

@@ -1,0 +1,209 @@
+"""`aesplat predict`: image loading, camera paths, checkpoint loading and the files it writes."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from PIL import Image
+
+from aesplat.geometry import make_pose, matrix_to_quat, quat_to_matrix
+from aesplat.predict import (
+    colorize_depth,
+    interpolate_cameras,
+    load_checkpoint,
+    load_image,
+    main,
+    slerp,
+)
+
+pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
+
+IMAGE_SIZE = 28
+SH_DEGREE = 2
+
+
+def write_tiny_checkpoint(run_dir: Path, data_root: str = "unused", image_size: int = IMAGE_SIZE) -> Path:
+    """A random-init tiny model saved by a real Lightning Trainer, plus the run's config.yaml (as `aesplat fit`
+    lays them out: RUN/checkpoints/last.ckpt, RUN/config.yaml)."""
+    from lightning.pytorch import Trainer
+
+    from aesplat.train import AESplatModule, EvalConfig, LossConfig, NetConfig
+
+    module = AESplatModule(
+        net=NetConfig(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0),
+        loss=LossConfig(lpips_weight=0.0),
+        eval=EvalConfig(metrics_lpips=False),
+    )
+    trainer = Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                      enable_model_summary=False, accelerator="cpu")  # fmt: skip
+    trainer.strategy.connect(module)
+    ckpt = run_dir / "checkpoints" / "last.ckpt"
+    ckpt.parent.mkdir(parents=True, exist_ok=True)
+    trainer.save_checkpoint(ckpt, weights_only=True)
+    data = {"root": data_root, "image_size": image_size, "near": 0.1, "far": 20.0, "eval_batch_size": 1}
+    (run_dir / "config.yaml").write_text(yaml.safe_dump({"data": data}))
+    return ckpt
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory) -> Path:
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("run"))
+
+
+def save_png(path: Path, array: np.ndarray) -> Path:
+    Image.fromarray(array.astype(np.uint8)).save(path)
+    return path
+
+
+# ----------------------------------------------------------------------------------------------- images
+
+
+def test_load_image_resizes_the_short_side_and_crops_the_centre(tmp_path):
+    # 30 x 90: left, middle and right thirds red, green, blue -> the centre crop is all green.
+    img = np.zeros((30, 90, 3), np.uint8)
+    img[:, :30, 0] = img[:, 30:60, 1] = img[:, 60:, 2] = 255
+    out = load_image(save_png(tmp_path / "wide.png", img), 14)
+    assert out.shape == (3, 14, 14) and out.dtype == torch.float32
+    centre = out[:, :, 2:-2]
+    assert centre[1].min() > 0.95 and centre[0].max() < 0.05 and centre[2].max() < 0.05
+
+
+def test_load_image_errors_name_the_file(tmp_path):
+    bad = tmp_path / "notes.png"
+    bad.write_text("not an image")
+    with pytest.raises(ValueError, match="notes.png"):
+        load_image(bad, 28)
+    with pytest.raises(ValueError, match="does not exist"):
+        load_image(tmp_path / "missing.jpg", 28)
+
+
+def test_colorize_depth_maps_near_and_far_to_the_ends_of_the_colour_map():
+    from matplotlib import colormaps
+
+    depth = torch.linspace(1.0, 10.0, 100).reshape(10, 10)
+    depth[0, 0] = 0.0  # nothing seen
+    rgb = colorize_depth(depth)
+    assert rgb.shape == (10, 10, 3) and rgb.dtype == np.uint8
+    assert (rgb[0, 0] == 0).all()
+    turbo = colormaps["turbo"]
+    np.testing.assert_allclose(rgb[-1, -1], np.round(np.array(turbo(0.0)[:3]) * 255), atol=1)  # far
+    np.testing.assert_allclose(rgb[0, 2], np.round(np.array(turbo(1.0)[:3]) * 255), atol=1)  # near
+
+
+# ----------------------------------------------------------------------------------------------- cameras
+
+
+def rot_z(angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_slerp_halfway_is_half_the_angle():
+    q0 = matrix_to_quat(torch.eye(3))[None]
+    q1 = matrix_to_quat(rot_z(math.pi / 2))[None]
+    mid = quat_to_matrix(slerp(q0, q1, torch.tensor([0.5])))[0]
+    torch.testing.assert_close(mid, rot_z(math.pi / 4), atol=1e-6, rtol=0)
+    same = slerp(q0, q0, torch.tensor([0.3]))  # equal rotations: no 0 / 0
+    torch.testing.assert_close(same, q0)
+
+
+def test_interpolate_cameras_passes_through_every_camera():
+    ext = torch.stack([make_pose(rot_z(a), torch.tensor([a, 0.0, 0.5 * a])) for a in (0.0, 0.4, 1.0)])
+    intr = torch.eye(3).repeat(3, 1, 1)
+    intr[:, 0, 0] = torch.tensor([1.0, 1.2, 0.8])
+    path_ext, path_int = interpolate_cameras(ext, intr, 5)  # frames at 0, 0.5, 1, 1.5, 2
+    assert path_ext.shape == (5, 4, 4) and path_int.shape == (5, 3, 3)
+    torch.testing.assert_close(path_ext[[0, 2, 4]], ext, atol=1e-6, rtol=0)
+    torch.testing.assert_close(path_int[[0, 2, 4]], intr)
+    torch.testing.assert_close(path_ext[1, :3, :3], rot_z(0.2), atol=1e-6, rtol=0)
+    torch.testing.assert_close(path_ext[3, :3, 3], torch.tensor([0.7, 0.0, 0.35]))
+    assert path_int[3, 0, 0] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="two cameras"):
+        interpolate_cameras(ext[:1], intr[:1], 5)
+
+
+# ----------------------------------------------------------------------------------------------- checkpoints
+
+
+def test_load_checkpoint_restores_the_trained_weights(tiny_ckpt):
+    loaded = load_checkpoint(tiny_ckpt)
+    assert loaded.sh_degree == SH_DEGREE and loaded.image_size == IMAGE_SIZE
+    assert not loaded.model.training
+    state = torch.load(tiny_ckpt, weights_only=True)["state_dict"]
+    for name, value in loaded.model.state_dict().items():
+        torch.testing.assert_close(value, state[f"model.{name}"], rtol=0, atol=0)
+
+
+def test_load_checkpoint_errors(tmp_path):
+    with pytest.raises(SystemExit, match="not found"):
+        load_checkpoint(tmp_path / "nope.ckpt")
+    torch.save({"something": 1}, tmp_path / "other.ckpt")
+    with pytest.raises(SystemExit, match="not an aesplat checkpoint"):
+        load_checkpoint(tmp_path / "other.ckpt")
+
+
+# ----------------------------------------------------------------------------------------------- end to end
+
+
+def read_png(path: Path) -> np.ndarray:
+    return np.asarray(Image.open(path).convert("RGB")).astype(np.float64)
+
+
+def test_predict_writes_every_output(tiny_ckpt, tmp_path):
+    rng = np.random.default_rng(0)
+    a = save_png(tmp_path / "a.png", rng.integers(0, 255, (40, 30, 3)))
+    b = save_png(tmp_path / "b view.jpg", rng.integers(0, 255, (36, 50, 3)))
+    out = tmp_path / "out"
+    assert main(["--ckpt", str(tiny_ckpt), "--out", str(out), "--novel-frames", "3", "--no-progress",
+                 str(a), str(b)]) == 0  # fmt: skip
+
+    header = (out / "gaussians.ply").read_bytes().split(b"end_header\n")[0].decode()
+    assert f"element vertex {2 * IMAGE_SIZE * IMAGE_SIZE}" in header
+    assert header.count("property float f_rest_") == 3 * ((SH_DEGREE + 1) ** 2 - 1)
+
+    cams = json.loads((out / "cameras.json").read_text())
+    assert [v["image"] for v in cams["views"]] == ["a", "b view"] and len(cams["novel"]) == 3
+    view0, view1 = cams["views"]
+    np.testing.assert_allclose(view0["camera_to_world"], np.eye(4), atol=1e-6)  # the canonical frame
+    k_norm, k_pix = np.array(view1["intrinsics_normalized"]), np.array(view1["intrinsics_pixels"])
+    np.testing.assert_allclose(k_pix[:2], k_norm[:2] * IMAGE_SIZE, rtol=1e-6)
+    c2w, w2c = np.array(view1["camera_to_world"]), np.array(view1["world_to_camera"])
+    np.testing.assert_allclose(c2w @ w2c, np.eye(4), atol=1e-5)
+    assert view1["width"] == view1["height"] == IMAGE_SIZE
+
+    for folder in ("inputs", "renders", "depth"):
+        pngs = sorted((out / folder).glob("*.png"))
+        assert [p.name for p in pngs] == ["00_a.png", "01_b view.png"]
+        assert Image.open(pngs[0]).size == (IMAGE_SIZE, IMAGE_SIZE)
+    depth = np.load(out / "depth" / "00_a.npy")
+    assert depth.shape == (IMAGE_SIZE, IMAGE_SIZE) and ((depth >= 0.1 - 1e-4) & (depth <= 20.0 + 1e-4)).all()
+    assert sorted(p.name for p in (out / "novel").iterdir()) == [
+        "000.png",
+        "001.png",
+        "002.png",
+        "trajectory.gif",
+    ]
+    # The path starts at the first input camera and ends at the last: its end frames are the re-renders.
+    assert np.abs(read_png(out / "novel" / "000.png") - read_png(out / "renders" / "00_a.png")).mean() < 1.0
+    assert (
+        np.abs(read_png(out / "novel" / "002.png") - read_png(out / "renders" / "01_b view.png")).mean() < 1.0
+    )
+
+
+def test_predict_rejects_bad_input(tiny_ckpt, tmp_path):
+    good = save_png(tmp_path / "good.png", np.zeros((28, 28, 3)))
+    bad = tmp_path / "broken.jpg"
+    bad.write_bytes(b"\xff\xd8 truncated")
+    out = str(tmp_path / "out")
+    with pytest.raises(SystemExit, match="broken.jpg"):
+        main(["--ckpt", str(tiny_ckpt), "--out", out, str(good), str(bad)])
+    with pytest.raises(SystemExit, match="at least two images"):
+        main(["--ckpt", str(tiny_ckpt), "--out", out, str(good)])
+    with pytest.raises(SystemExit, match="multiple of the patch size"):
+        main(["--ckpt", str(tiny_ckpt), "--out", out, "--size", "30", str(good), str(good)])
+    with pytest.raises(SystemExit, match="ply-sh-degree"):
+        main(["--ckpt", str(tiny_ckpt), "--out", out, "--ply-sh-degree", "4", str(good), str(good)])
