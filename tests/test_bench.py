@@ -1,0 +1,198 @@
+"""`aesplat bench`: the sweep, its measurements (checked against a direct render) and its report files."""
+
+import csv
+import json
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+from PIL import Image
+
+from aesplat.bench import (
+    Bench,
+    Point,
+    Row,
+    Setting,
+    default_sweep,
+    main,
+    markdown_tables,
+    model_input_sizes,
+    resize_views,
+    write_report,
+)
+from aesplat.model import build_model
+from aesplat.render import render
+from aesplat.train.metrics import psnr
+from aesplat.types import BatchedExample, BatchedViews
+from tests.test_predict import SH_DEGREE, write_tiny_checkpoint
+
+pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
+
+SIZE = 28
+
+
+def views(v: int, size: int = SIZE) -> BatchedViews:
+    return BatchedViews(
+        images=torch.rand(1, v, 3, size, size),
+        extrinsics=torch.eye(4).repeat(1, v, 1, 1),
+        intrinsics=torch.tensor([[1.0, 0, 0.5], [0, 1.0, 0.5], [0, 0, 1]]).repeat(1, v, 1, 1),
+        near=torch.full((1, v), 0.1),
+        far=torch.full((1, v), 20.0),
+        index=torch.arange(v)[None],
+    )
+
+
+@pytest.fixture(scope="module")
+def model() -> torch.nn.Module:
+    torch.manual_seed(0)
+    return build_model(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0).eval()
+
+
+@pytest.fixture(scope="module")
+def scenes() -> list[BatchedExample]:
+    torch.manual_seed(1)
+    return [BatchedExample(context=views(2), target=views(2), scene=[f"s{i}"]) for i in range(2)]
+
+
+# ----------------------------------------------------------------------------------------------- the sweep
+
+
+def test_default_sweep_varies_one_knob_at_a_time_from_the_baseline():
+    baseline, points = default_sweep(4, 224, backends=("torch",), tile_sizes=(8, 16), compiled=True)
+    assert baseline == Setting(backend="torch")
+    knobs = list(dict.fromkeys(p.knob for p in points))
+    assert knobs == ["sh_degree", "input_size", "render_size", "keep_fraction", "min_opacity", "precision",
+                     "backend", "tile_size"]  # fmt: skip
+    for knob in knobs[
+        :-1
+    ]:  # every series but the tile sizes (16 is not the baseline's None) holds the baseline
+        assert sum(p.setting == baseline for p in points if p.knob == knob) == 1, knob
+    for p in points:  # each point differs from the baseline in its own knob only
+        changed = {k for k in vars(baseline) if getattr(p.setting, k) != getattr(baseline, k)}
+        assert changed <= {p.knob, "render_options"}, (p, changed)
+    assert [p.label for p in points if p.knob == "sh_degree"] == ["SH 0", "SH 1", "SH 2", "SH 3", "SH 4"]
+    assert ("compile", True) in [o for p in points for o in p.setting.render_options]
+    assert len(default_sweep(2, 28, knobs=["precision"])[1]) == 2
+    with pytest.raises(ValueError, match="unknown knob"):
+        default_sweep(2, 28, knobs=["colour"])
+
+
+def test_model_input_sizes_are_multiples_of_the_patch():
+    sizes = model_input_sizes(224, [0.5, 0.75, 1.0, 0.1])
+    assert sizes == [28, 112, 168, 224] and all(s % 14 == 0 for s in sizes)
+
+
+def test_resize_views_keeps_normalised_intrinsics():
+    v = views(2, 28)
+    small = resize_views(v, 14)
+    assert small.images.shape == (1, 2, 3, 14, 14)
+    assert small.intrinsics is v.intrinsics and resize_views(v, None) is v and resize_views(v, 28) is v
+
+
+# ----------------------------------------------------------------------------------------------- measuring
+
+
+def test_bench_figures_match_a_direct_render(model, scenes):
+    background = torch.tensor([0.2, 0.3, 0.4])
+    baseline, points = default_sweep(SH_DEGREE, SIZE, knobs=["sh_degree", "render_size", "keep_fraction"],
+                                     render_scales=(0.5, 1.0), keep_fractions=(0.5,))  # fmt: skip
+    points = [p for p in points if p.label != "SH 1"]
+    scenes = scenes[:1]
+    bench = Bench(model, scenes, torch.device("cpu"), repeats=1, warmup=0,
+                  render_kwargs={"background": background}, progress=False)  # fmt: skip
+    rows = bench.run(points, baseline)
+    by = {(r.knob, r.label): r for r in rows}
+
+    # The baseline, measured here by hand: predicted target cameras, every SH band, full size.
+    want = []
+    with torch.no_grad():
+        for scene in scenes:
+            out = model(scene.context.images, scene.target.images)
+            img = render(out.gaussians, out.extrinsics[:, 2:], out.intrinsics[:, 2:], SIZE, SIZE,
+                         background=background).color[0]  # fmt: skip
+            want += psnr(img, scene.target.images[0]).tolist()
+    full = by[("sh_degree", f"SH {SH_DEGREE}")]
+    assert full.baseline and full.psnr == pytest.approx(sum(want) / len(want), abs=1e-4)
+    # Shared settings are one measurement: the full-size render and all Gaussians are the same baseline row.
+    for key in (("render_size", f"{SIZE} px"), ("keep_fraction", "100 %")):
+        assert by[key].baseline and by[key].psnr == full.psnr and by[key].render_ms == full.render_ms
+    assert sum(r.baseline for r in rows) == 3
+    assert by[("sh_degree", "SH 0")].psnr != full.psnr  # higher bands of a random model are not silent
+    assert by[("keep_fraction", "50 %")].gaussians == full.gaussians / 2 == SIZE * SIZE
+    for r in rows:
+        assert not r.skipped and -1 <= r.ssim <= 1 and math.isfinite(r.psnr)
+        assert r.forward_ms > 0 and r.render_ms > 0 and r.total_ms == pytest.approx(r.forward_ms + r.render_ms)
+    # Only the forward key (input size, precision) triggers model runs: one here for all points.
+    assert len(bench._forwards) == 1
+
+
+def test_input_size_and_precision_run_their_own_forward(model, scenes):
+    base = Setting()
+    points = [Point("input_size", "14 px", replace(base, input_size=14)), Point("precision", "bf16",
+              replace(base, precision="bf16")), Point("precision", "fp32", base)]  # fmt: skip
+    bench = Bench(model, scenes[:1], torch.device("cpu"), repeats=1, warmup=0, progress=False)
+    rows = bench.run(points, base)
+    assert len(bench._forwards) == 3
+    small = bench._forwards[(14, "fp32")][0]
+    assert small.gaussians.num_gaussians == 2 * 14 * 14  # one Gaussian per input pixel
+    assert all(not r.skipped for r in rows), [r.skipped for r in rows]
+    assert rows[0].gaussians == 2 * 14 * 14 and rows[2].gaussians == 2 * SIZE * SIZE
+
+
+def test_a_failing_setting_is_reported_not_fatal(model, scenes):
+    base = Setting()
+    points = [Point("backend", "nope", replace(base, backend="nope")), Point("backend", "torch", base)]
+    rows = Bench(model, scenes[:1], torch.device("cpu"), repeats=1, warmup=0, progress=False).run(points, base)
+    assert "unknown render backend" in rows[0].skipped and math.isnan(rows[0].psnr)
+    assert not rows[1].skipped
+    assert "not measured here" in markdown_tables(rows, {})
+
+
+# ----------------------------------------------------------------------------------------------- report
+
+
+def fake_rows() -> list[Row]:
+    rows = [Row("sh_degree", f"SH {d}", psnr=20.0 + d, ssim=0.5 + 0.1 * d, forward_ms=10.0, render_ms=5.0 + d,
+                total_ms=15.0 + d, gaussians=100, baseline=d == 2) for d in range(3)]  # fmt: skip
+    rows.append(Row("precision", "fp32", **{k: getattr(rows[2], k) for k in ("psnr", "ssim", "forward_ms",
+                    "render_ms", "total_ms", "gaussians")}, baseline=True))  # fmt: skip
+    rows.append(Row("precision", "bf16", skipped="RuntimeError: no bf16 here"))
+    return rows
+
+
+def test_write_report_files(tmp_path):
+    paths = write_report(fake_rows(), tmp_path / "b", {"ckpt": "x.ckpt", "scenes": 3})
+    with open(paths["bench.csv"]) as f:
+        table = list(csv.DictReader(f))
+    assert len(table) == 5 and table[0]["knob"] == "sh_degree" and float(table[1]["psnr"]) == 21.0
+    md = paths["BENCH.md"].read_text()
+    assert "## SH degree at render" in md and "## model precision" in md
+    assert "| SH 0 | 20.00 | -2.00 | 0.5000 | 10.0 | 5.0 | 15.0 | 1.13× | 100 |" in md
+    assert "| **SH 2** |" in md and "no bf16 here" in md
+    assert Image.open(paths["accuracy_vs_time.png"]).size[0] > 500
+    saved = json.loads(paths["bench.json"].read_text())
+    assert saved["meta"]["ckpt"] == "x.ckpt" and len(saved["rows"]) == 5
+
+
+# ----------------------------------------------------------------------------------------------- command line
+
+
+def test_bench_command_end_to_end(tmp_path):
+    from aesplat.data import convert_dataset, generate_dataset
+
+    generate_dataset(tmp_path / "src", scenes=1, test_scenes=2, frames=10, height=32, width=40, seed=0)
+    convert_dataset(tmp_path / "src", tmp_path / "shards", size=SIZE)
+    ckpt = write_tiny_checkpoint(tmp_path / "run", data_root=str(tmp_path / "shards"), image_size=SIZE)
+    assert main(["--ckpt", str(ckpt), "--knobs", "render_size,min_opacity", "--render-scales", "1",
+                 "--min-opacities", "0.5", "--scenes", "1", "--repeats", "1", "--warmup", "0",
+                 "--no-progress"]) == 0  # fmt: skip
+    out = tmp_path / "run" / "bench"  # the default: next to the run
+    rows = json.loads((out / "bench.json").read_text())["rows"]
+    labels = [(r["knob"], r["label"]) for r in rows]
+    assert labels == [("render_size", f"{SIZE} px"), ("min_opacity", "≥ 0"), ("min_opacity", "≥ 0.5")]
+    assert all(not r["skipped"] for r in rows) and rows[0]["baseline"] and rows[1]["baseline"]
+    assert rows[0]["psnr"] == rows[1]["psnr"] and rows[2]["gaussians"] <= rows[1]["gaussians"]
+    assert (out / "accuracy_vs_time.png").is_file() and (out / "bench.csv").is_file()
+    with pytest.raises(SystemExit, match="no shards"):
+        main(["--ckpt", str(ckpt), "--data-root", str(tmp_path / "empty"), "--no-progress"])
