@@ -80,11 +80,13 @@ def test_depth_agrees_with_cameras():
     seen = out.depth[1][rows, cols]  # [N, 4]
     zv = z[valid]
     consistent = (zv >= seen.amin(-1) * 0.995) & (zv <= seen.amax(-1) * 1.005)
-    assert consistent.float().mean() > 0.95  # the rest: occlusions
+    occluded = zv > seen.amax(-1) * 1.005  # something nearer hides the point in view 1
+    assert consistent.float().mean() > 0.95
+    assert (~consistent & ~occluded).float().mean() < 0.03  # seen "through" a surface: only at silhouettes
     colours = out.images[1][rows, cols]  # [N, 4, 3]
     own = out.images[0].reshape(-1, 3)[valid]
     inside = (own >= colours.amin(1) - 0.02) & (own <= colours.amax(1) + 0.02)
-    assert inside.all(-1)[consistent].float().mean() > 0.95
+    assert inside.all(-1)[consistent].float().mean() > 0.9  # the rest: checker edges between pixel centres
 
 
 def test_scene_is_deterministic_from_seed():

@@ -141,19 +141,29 @@ class DataModule(L.LightningDataModule):
     # ------------------------------------------------------------------------------------------- loaders
 
     def shards(self, split: str) -> list[str]:
-        """Sorted shard paths of ``root/<split>``; a clear error if there are none."""
+        """Sorted shard paths of ``root/<split>``: those the manifest lists if there is one (stale tars from
+        an older conversion are ignored), else every ``*.tar``. A clear error if there are none."""
         folder = self.root / split
-        found = sorted(str(p) for p in folder.glob("*.tar"))
+        path = self.root / "manifest.json"
+        manifest = json.loads(path.read_text()) if path.exists() else {}
+        listed = manifest.get("splits", {}).get(split)
+        if listed is not None:
+            wanted = [folder / s["shard"] for s in listed["shards"]]
+            found = sorted(str(p) for p in wanted if p.exists())
+            if len(found) < len(wanted):
+                log.warning(
+                    "%d shards listed in %s are missing from %s", len(wanted) - len(found), path, folder
+                )
+        else:
+            found = sorted(str(p) for p in folder.glob("*.tar"))
         if not found:
             raise FileNotFoundError(
                 f"no shards in {folder}: create them with `python data_prep/to_shards.py --src SRC --out "
                 f"{self.root}` (or `python data_prep/synthetic.py --out SRC` first for the synthetic set)"
             )
-        manifest = self.root / "manifest.json"
-        if manifest.exists():
-            size = json.loads(manifest.read_text()).get("config", {}).get("size")
-            if size is not None and size != self.image_size:
-                log.info("shards are %dpx, resizing to image_size=%d while loading", size, self.image_size)
+        size = manifest.get("config", {}).get("size")
+        if size is not None and size != self.image_size:
+            log.info("shards are %dpx, resizing to image_size=%d while loading", size, self.image_size)
         return found
 
     def _config(self, train: bool) -> StreamConfig:

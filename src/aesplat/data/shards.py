@@ -277,13 +277,19 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
         "sha256": sha256(shard),
         "bytes": shard.stat().st_size,
         "config": asdict(job.cfg),
+        "evaluation_index_sha256": _index_digest(job.eval_index),
     }
     shard.with_suffix(".json").write_text(json.dumps(record, indent=1))
     return record
 
 
-def _done(shard: Path, cfg: ConvertConfig) -> dict[str, Any] | None:
-    """The sidecar record if ``shard`` was completed with the same options and its checksum still matches."""
+def _index_digest(index: dict[str, Any] | None) -> str | None:
+    return None if index is None else hashlib.sha256(json.dumps(index, sort_keys=True).encode()).hexdigest()
+
+
+def _done(shard: Path, job: _Job) -> dict[str, Any] | None:
+    """The sidecar record if ``shard`` was completed with the same options and evaluation index and its
+    checksum still matches."""
     sidecar = shard.with_suffix(".json")
     if not (shard.exists() and sidecar.exists()):
         return None
@@ -291,7 +297,9 @@ def _done(shard: Path, cfg: ConvertConfig) -> dict[str, Any] | None:
         record = json.loads(sidecar.read_text())
     except json.JSONDecodeError:
         return None
-    if record.get("config") != json.loads(json.dumps(asdict(cfg))) or record.get("sha256") != sha256(shard):
+    same_options = record.get("config") == json.loads(json.dumps(asdict(job.cfg)))
+    same_index = record.get("evaluation_index_sha256") == _index_digest(job.eval_index)
+    if not (same_options and same_index) or record.get("sha256") != sha256(shard):
         return None
     return record
 
@@ -350,16 +358,18 @@ def convert_dataset(
         (out / split).mkdir(parents=True, exist_ok=True)
         for chunk in list_chunks(src / split):
             shard = out / split / f"{split}-{chunk.stem}.tar"
-            done = _done(shard, base)
+            ev = index if split == "test" else None
+            cfg = (
+                ConvertConfig(**{**asdict(base), "samples_per_scene": 1})
+                if split == "test" and ev is None
+                else base
+            )
+            job = _Job(split, str(chunk), str(shard), cfg, ev)
+            done = _done(shard, job)
             if done is not None:
                 records.append((split, done))
-                continue
-            ev = index if split == "test" else None
-            if split == "test" and ev is None:
-                ev_cfg = ConvertConfig(**{**asdict(base), "samples_per_scene": 1})
-                jobs.append((split, _Job(split, str(chunk), str(shard), ev_cfg, None)))
             else:
-                jobs.append((split, _Job(split, str(chunk), str(shard), base, ev)))
+                jobs.append((split, job))
 
     from tqdm import tqdm
 

@@ -208,8 +208,8 @@ class _ShardStream(IterableDataset):
         self.counters = counters
 
     def _count(self, what: str, n: int = 1) -> None:
-        wid, _ = _worker()
-        row = min(wid + 1 if get_worker_info() is not None else 0, self.counters.shape[0] - 1)
+        info = get_worker_info()
+        row = 0 if info is None else min(info.id + 1, self.counters.shape[0] - 1)  # one row per process
         self.counters[row, COUNTERS.index(what)] += n
 
     def _samples(self, shard: str) -> Iterator[tuple[str, dict[str, bytes]]]:

@@ -304,27 +304,21 @@ def sample_scene(
     pos, angles = _camera_path(rng, frames, half)
 
     boxes, spheres = [], []
-    for _ in range(200):  # furniture away from the path
-        if len(boxes) >= rng.integers(2, 5) and len(spheres) >= 1:
+    want_boxes, want_spheres = int(rng.integers(2, 5)), int(rng.integers(1, 4))
+    for _ in range(200):  # furniture placed away from the path (tries until the room is furnished)
+        if len(boxes) >= want_boxes and len(spheres) >= want_spheres:
             break
-        is_box = len(boxes) < 4 and (len(spheres) >= 3 or rng.uniform() < 0.6)
+        is_box = len(boxes) < want_boxes and (len(spheres) >= want_spheres or rng.uniform() < 0.6)
         size = rng.uniform(0.3, 0.9, size=3) if is_box else np.full(3, rng.uniform(0.25, 0.6))
-        centre = np.array([rng.uniform(-1, 1) * (half[0] - size[0] - 0.1), 0.0,
+        centre = np.array([rng.uniform(-1, 1) * (half[0] - size[0] - 0.1), half[1],
                            rng.uniform(-1, 1) * (half[2] - size[2] - 0.1)])  # fmt: skip
-        if (
-            np.min(np.linalg.norm(pos[:, [0, 2]] - centre[[0, 2]], axis=-1))
-            < np.linalg.norm(size[[0, 2]]) + 0.5
-        ):
+        clearance = np.linalg.norm(pos[:, [0, 2]] - centre[[0, 2]], axis=-1).min()
+        if clearance < np.linalg.norm(size[[0, 2]]) + 0.5:
             continue
-        if is_box:
-            boxes.append(
-                (
-                    centre - [size[0], 2 * size[1], size[2]] + [0, half[1], 0],
-                    centre + [size[0], 0, size[2]] + [0, half[1], 0],
-                )
-            )
-        else:
-            centre[1] = half[1] - size[0] - rng.uniform(0.0, 1.0)  # resting or floating
+        if is_box:  # standing on the floor (y = half[1], y points down)
+            boxes.append((centre - [size[0], 2 * size[1], size[2]], centre + [size[0], 0.0, size[2]]))
+        else:  # resting on the floor or floating above it
+            centre[1] = half[1] - size[0] - rng.uniform(0.0, 1.0)
             spheres.append((centre, size[0]))
 
     n_surfaces = 6 + len(boxes) + len(spheres)
