@@ -121,3 +121,52 @@ def test_dinov2_block_chunks_and_prefixes_are_mapped():
     sd = {"module.blocks.1.5.attn.qkv.weight": torch.zeros(1), "blocks.2.ls1.gamma": torch.ones(1)}
     out, fmt, ignored = convert_encoder_state_dict(sd)
     assert set(out) == {"blocks.5.attn.qkv.weight", "blocks.2.ls1.gamma"} and fmt == "timm" and ignored == []
+
+
+def vggt_state_dict(dim: int, depth: int, registers: int) -> dict:
+    """VGGT's aggregator names: ``aggregator.patch_embed.`` (DINOv2 reg4) plus frame / global blocks."""
+    g = torch.Generator().manual_seed(2)
+
+    def r(*shape):
+        return torch.randn(*shape, generator=g)
+
+    sd = {"aggregator.patch_embed." + k: v for k, v in to_dinov2(timm_state_dict(dim, depth, 37, 4)).items()}
+    sd["aggregator.camera_token"] = r(1, 2, 1, dim)
+    sd["aggregator.register_token"] = r(1, 2, registers, dim)
+    head_dim = dim // 3
+    for kind in ("frame_blocks", "global_blocks"):
+        for i in range(depth):
+            p = f"aggregator.{kind}.{i}."
+            sd |= {
+                p + "norm1.weight": r(dim), p + "norm1.bias": r(dim),
+                p + "attn.qkv.weight": r(3 * dim, dim), p + "attn.qkv.bias": r(3 * dim),
+                p + "attn.q_norm.weight": r(head_dim), p + "attn.q_norm.bias": r(head_dim),
+                p + "attn.k_norm.weight": r(head_dim), p + "attn.k_norm.bias": r(head_dim),
+                p + "attn.proj.weight": r(dim, dim), p + "attn.proj.bias": r(dim),
+                p + "ls1.gamma": r(dim),
+                p + "norm2.weight": r(dim), p + "norm2.bias": r(dim),
+                p + "mlp.fc1.weight": r(4 * dim, dim), p + "mlp.fc1.bias": r(4 * dim),
+                p + "mlp.fc2.weight": r(dim, 4 * dim), p + "mlp.fc2.bias": r(dim),
+                p + "ls2.gamma": r(dim),
+            }  # fmt: skip
+    sd["camera_head.trunk.0.weight"] = r(4, 4)  # VGGT's own heads are not ours
+    return sd
+
+
+def test_load_vggt_aggregator(tmp_path):
+    sd = vggt_state_dict(DIM, DEPTH, registers=4)
+    path = tmp_path / "vggt.pt"
+    torch.save(sd, path)
+    model = build_model("tiny", vggt_weights=str(path), encoder_registers=4, num_register_tokens=4)
+    report = model.weights_report
+    assert report.format == "vggt" and report.missing == [] and report.unexpected == []
+    assert set(report.ignored) == {"aggregator.patch_embed.mask_token", "camera_head.trunk.0.weight"}
+    assert model.pretrained_backbone
+    t = model.transformer.state_dict()
+    assert torch.equal(
+        t["global_blocks.3.attn.k_norm.weight"], sd["aggregator.global_blocks.3.attn.k_norm.weight"]
+    )
+    assert torch.equal(t["register_token"], sd["aggregator.register_token"])
+    assert torch.equal(model.encoder.state_dict()["reg_token"], sd["aggregator.patch_embed.register_tokens"])
+    with pytest.raises(ValueError, match="register-token"):
+        build_model("tiny", vggt_weights=str(path), encoder_registers=4, num_register_tokens=2)

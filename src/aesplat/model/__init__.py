@@ -12,16 +12,11 @@ from .appearance import (
 )
 from .camera_head import CameraHead
 from .dpt import DPT, DepthHead
-from .encoder import (
-    EncoderConfig,
-    PatchEncoder,
-    WeightsReport,
-    convert_encoder_state_dict,
-    load_encoder_weights,
-)
+from .encoder import EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead, GaussianHeadOutput
 from .model import SIZES, AESplatModel, ModelConfig, ModelOutput, build_model
 from .transformer import GeometryTransformer, TransformerConfig
+from .weights import WeightsReport, convert_encoder_state_dict, load_encoder_weights, load_vggt_weights
 
 __all__ = [
     "APPEARANCE_MODES",
@@ -47,5 +42,6 @@ __all__ = [
     "gvsre_descriptor",
     "i2dc",
     "load_encoder_weights",
+    "load_vggt_weights",
     "warped_color_map",
 ]

@@ -1,17 +1,13 @@
 """Patch encoder: a DINOv2-style ViT with 14-pixel patches, applied to every view independently.
 
 The architecture and parameter names are those of timm's ``vit_*_patch14_dinov2`` (and of the original
-DINOv2 release, which differs only in a few names), so a local checkpoint of either loads by name; see
-:func:`load_encoder_weights`. Nothing is ever downloaded.
+DINOv2 release, which differs only in a few names), so a local checkpoint of either loads by name (see
+``weights.py``). Nothing is ever downloaded.
 """
 
 from __future__ import annotations
 
-import math
-import re
-import warnings
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -83,113 +79,3 @@ class PatchEncoder(nn.Module):
         for block in self.blocks:
             x = block(x)
         return self.norm(x)[:, 1 + self.cfg.num_registers :]
-
-
-@dataclass
-class WeightsReport:
-    """What :func:`load_encoder_weights` did: the detected format and the keys it could not match."""
-
-    path: str
-    format: str  # "timm" or "dinov2"
-    loaded: list[str] = field(default_factory=list)
-    missing: list[str] = field(default_factory=list)  # encoder parameters the checkpoint lacks
-    unexpected: list[str] = field(default_factory=list)  # checkpoint keys the encoder does not have
-    ignored: list[str] = field(default_factory=list)  # known keys with no use here (DINOv2's mask_token)
-
-
-# Keys of the original DINOv2 release that the encoder deliberately has no use for.
-_DINOV2_UNUSED = {"mask_token"}
-
-
-def _unwrap(obj: object) -> dict[str, Tensor]:
-    """Find the state dict inside a checkpoint ({"model": ...}, {"state_dict": ...}, {"teacher": ...})."""
-    while isinstance(obj, dict) and not any(isinstance(v, Tensor) for v in obj.values()):
-        for key in ("model", "state_dict", "teacher", "module"):
-            if key in obj:
-                obj = obj[key]
-                break
-        else:
-            break
-    if not isinstance(obj, dict) or not obj:
-        raise ValueError("the checkpoint holds no state dict (expected a dict of tensors)")
-    return {k: v for k, v in obj.items() if isinstance(v, Tensor)}
-
-
-def convert_encoder_state_dict(state: dict[str, Tensor]) -> tuple[dict[str, Tensor], str, list[str]]:
-    """Map a timm or original-DINOv2 ViT/14 state dict onto :class:`PatchEncoder` names.
-
-    Returns (converted state, detected format, ignored keys). Handles "module."/"backbone."/"encoder."
-    prefixes, DINOv2's block chunks (``blocks.c.i.``), ``register_tokens`` -> ``reg_token``, and position
-    embeddings without a class-token entry (timm's ``reg4`` models), which get a zero class-token row.
-    """
-    out: dict[str, Tensor] = {}
-    ignored: list[str] = []
-    fmt = "dinov2" if any(k.endswith(("register_tokens", "mask_token")) for k in state) else "timm"
-    for key, value in state.items():
-        k = re.sub(r"^(module\.|backbone\.|encoder\.|model\.)+", "", key)
-        k = re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", k)  # DINOv2 block chunks
-        if k in _DINOV2_UNUSED:
-            ignored.append(key)
-            continue
-        if k == "register_tokens":
-            k = "reg_token"
-        out[k] = value
-    pos = out.get("pos_embed")
-    if pos is not None and pos.ndim == 3 and math.isqrt(pos.shape[1]) ** 2 == pos.shape[1]:
-        out["pos_embed"] = torch.cat([pos.new_zeros(1, 1, pos.shape[2]), pos], dim=1)
-    return out, fmt, ignored
-
-
-def _resize_pos_embed(pos: Tensor, grid: int) -> Tensor:
-    """Position embedding [1, 1 + g·g, D] from a checkpoint -> [1, 1 + grid·grid, D] (bicubic)."""
-    g = math.isqrt(pos.shape[1] - 1)
-    if g * g != pos.shape[1] - 1:
-        raise ValueError(f"checkpoint pos_embed has {pos.shape[1] - 1} patch positions, not a square grid")
-    if g == grid:
-        return pos
-    patch = pos[:, 1:].reshape(1, g, g, -1).permute(0, 3, 1, 2).float()
-    patch = F.interpolate(patch, size=(grid, grid), mode="bicubic", align_corners=False)
-    return torch.cat([pos[:, :1], patch.permute(0, 2, 3, 1).reshape(1, grid * grid, -1).to(pos.dtype)], 1)
-
-
-def load_encoder_weights(encoder: PatchEncoder, path: str | Path) -> WeightsReport:
-    """Load a local timm-format or original-DINOv2 ViT/14 checkpoint into ``encoder``. Never downloads.
-
-    Keys the encoder lacks and encoder parameters the checkpoint lacks are reported with a warning and
-    returned in the :class:`WeightsReport`; a shape mismatch (a checkpoint of another size) is an error.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"encoder weights file {path} does not exist; give the path of a local timm or DINOv2 ViT/14 "
-            "checkpoint (.pth/.pt/.bin), or leave `weights` unset for random initialisation"
-        )
-    state = _unwrap(torch.load(path, map_location="cpu", weights_only=True))
-    state, fmt, ignored = convert_encoder_state_dict(state)
-    own = encoder.state_dict()
-    report = WeightsReport(path=str(path), format=fmt, ignored=ignored)
-    to_load: dict[str, Tensor] = {}
-    for key, value in state.items():
-        if key not in own:
-            report.unexpected.append(key)
-            continue
-        if key == "pos_embed":
-            value = _resize_pos_embed(value, encoder.cfg.pos_grid)
-        if value.shape != own[key].shape:
-            raise ValueError(
-                f"{path}: '{key}' has shape {tuple(value.shape)} but the encoder expects "
-                f"{tuple(own[key].shape)}; pick the model size that matches the checkpoint "
-                f"(encoder width {encoder.cfg.dim}, depth {encoder.cfg.depth})"
-            )
-        to_load[key] = value.to(own[key].dtype)
-    report.loaded = sorted(to_load)
-    report.missing = sorted(set(own) - set(to_load))
-    encoder.load_state_dict(to_load, strict=False)
-    if report.missing or report.unexpected:
-        warnings.warn(
-            f"encoder weights {path} ({fmt} format): loaded {len(report.loaded)} tensors; "
-            f"missing {len(report.missing)}: {report.missing[:8]}; "
-            f"unexpected {len(report.unexpected)}: {report.unexpected[:8]}",
-            stacklevel=2,
-        )
-    return report

@@ -15,9 +15,10 @@ from aesplat.types import Gaussians
 from .appearance import APPEARANCE_MODES, DecoupledAppearance
 from .camera_head import CameraHead
 from .dpt import DepthHead
-from .encoder import PATCH_SIZE, EncoderConfig, PatchEncoder, WeightsReport, load_encoder_weights
+from .encoder import PATCH_SIZE, EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead
 from .transformer import GeometryTransformer, TransformerConfig
+from .weights import WeightsReport, load_encoder_weights, load_vggt_weights
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,7 @@ class ModelConfig:
     scale_multiplier: float = 0.001
     scale_max: float = 0.3
     weights: str | None = None  # local encoder checkpoint (timm or DINOv2 format)
+    vggt_weights: str | None = None  # local VGGT checkpoint: encoder + geometry transformer (aggregator)
 
 
 SIZES: dict[str, ModelConfig] = {
@@ -147,9 +149,14 @@ class AESplatModel(nn.Module):
             self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max,
         )  # fmt: skip
         self.weights_report: WeightsReport | None = None
+        if cfg.weights and cfg.vggt_weights:
+            raise ValueError("give either `weights` (encoder only) or `vggt_weights` (encoder + transformer)")
         if cfg.weights:
             self.weights_report = load_encoder_weights(self.encoder, cfg.weights)
-            log.info("loaded %d encoder tensors from %s", len(self.weights_report.loaded), cfg.weights)
+        elif cfg.vggt_weights:
+            self.weights_report = load_vggt_weights(self.encoder, self.transformer, cfg.vggt_weights)
+        if self.weights_report is not None:
+            log.info("loaded %d tensors from %s", len(self.weights_report.loaded), self.weights_report.path)
 
     @property
     def sh_degree(self) -> int:
@@ -159,7 +166,8 @@ class AESplatModel(nn.Module):
     @property
     def pretrained_backbone(self) -> bool:
         """Whether pretrained encoder weights were loaded (training gives them a lower learning rate)."""
-        return self.weights_report is not None and len(self.weights_report.loaded) > 0
+        report = self.weights_report
+        return report is not None and any(not k.startswith("transformer.") for k in report.loaded)
 
     def named_parameter_groups(self) -> dict[str, list[tuple[str, nn.Parameter]]]:
         """Trainable parameters by optimizer group: ``appearance`` (view-dependent head + GVSRE MLP),

@@ -1,0 +1,168 @@
+"""Loading local pretrained weights by name: DINOv2 ViT/14 encoders (timm or original format) and VGGT's
+aggregator (encoder + alternating-attention blocks). Nothing is ever downloaded.
+
+Unknown and missing keys are never silently ignored: each loader returns a :class:`WeightsReport` and warns.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .encoder import PatchEncoder
+from .transformer import GeometryTransformer
+
+
+@dataclass
+class WeightsReport:
+    """What a weights loader did: the detected format and the keys it could not match."""
+
+    path: str
+    format: str  # "timm", "dinov2" or "vggt"
+    loaded: list[str] = field(default_factory=list)
+    missing: list[str] = field(default_factory=list)  # encoder parameters the checkpoint lacks
+    unexpected: list[str] = field(default_factory=list)  # checkpoint keys the encoder does not have
+    ignored: list[str] = field(default_factory=list)  # known keys with no use here (DINOv2's mask_token)
+
+
+# Keys of the original DINOv2 release that the encoder deliberately has no use for.
+_DINOV2_UNUSED = {"mask_token"}
+
+
+def _unwrap(obj: object) -> dict[str, Tensor]:
+    """Find the state dict inside a checkpoint ({"model": ...}, {"state_dict": ...}, {"teacher": ...})."""
+    while isinstance(obj, dict) and not any(isinstance(v, Tensor) for v in obj.values()):
+        for key in ("model", "state_dict", "teacher", "module"):
+            if key in obj:
+                obj = obj[key]
+                break
+        else:
+            break
+    if not isinstance(obj, dict) or not obj:
+        raise ValueError("the checkpoint holds no state dict (expected a dict of tensors)")
+    return {k: v for k, v in obj.items() if isinstance(v, Tensor)}
+
+
+def convert_encoder_state_dict(state: dict[str, Tensor]) -> tuple[dict[str, Tensor], str, list[str]]:
+    """Map a timm or original-DINOv2 ViT/14 state dict onto :class:`PatchEncoder` names.
+
+    Returns (converted state, detected format, ignored keys). Handles "module."/"backbone."/"encoder."
+    prefixes, DINOv2's block chunks (``blocks.c.i.``), ``register_tokens`` -> ``reg_token``, and position
+    embeddings without a class-token entry (timm's ``reg4`` models), which get a zero class-token row.
+    """
+    out: dict[str, Tensor] = {}
+    ignored: list[str] = []
+    fmt = "dinov2" if any(k.endswith(("register_tokens", "mask_token")) for k in state) else "timm"
+    for key, value in state.items():
+        k = re.sub(r"^(module\.|backbone\.|encoder\.|model\.)+", "", key)
+        k = re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", k)  # DINOv2 block chunks
+        if k in _DINOV2_UNUSED:
+            ignored.append(key)
+            continue
+        if k == "register_tokens":
+            k = "reg_token"
+        out[k] = value
+    pos = out.get("pos_embed")
+    if pos is not None and pos.ndim == 3 and math.isqrt(pos.shape[1]) ** 2 == pos.shape[1]:
+        out["pos_embed"] = torch.cat([pos.new_zeros(1, 1, pos.shape[2]), pos], dim=1)
+    return out, fmt, ignored
+
+
+def _resize_pos_embed(pos: Tensor, grid: int) -> Tensor:
+    """Position embedding [1, 1 + g·g, D] from a checkpoint -> [1, 1 + grid·grid, D] (bicubic)."""
+    g = math.isqrt(pos.shape[1] - 1)
+    if g * g != pos.shape[1] - 1:
+        raise ValueError(f"checkpoint pos_embed has {pos.shape[1] - 1} patch positions, not a square grid")
+    if g == grid:
+        return pos
+    patch = pos[:, 1:].reshape(1, g, g, -1).permute(0, 3, 1, 2).float()
+    patch = F.interpolate(patch, size=(grid, grid), mode="bicubic", align_corners=False)
+    return torch.cat([pos[:, :1], patch.permute(0, 2, 3, 1).reshape(1, grid * grid, -1).to(pos.dtype)], 1)
+
+
+def _read(path: str | Path, what: str) -> dict[str, Tensor]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{what} weights file {path} does not exist; give the path of a local checkpoint "
+            "(.pth/.pt/.bin), or leave it unset for random initialisation"
+        )
+    return _unwrap(torch.load(path, map_location="cpu", weights_only=True))
+
+
+def _load_matching(module: nn.Module, state: dict[str, Tensor], prefix: str, report: WeightsReport,
+                   pos_grid: int | None = None) -> None:  # fmt: skip
+    """Copy the tensors of ``state`` into ``module`` by name; record loaded / missing / unexpected keys
+    (with ``prefix``, the module's name in the model). A shape mismatch is an error."""
+    own = module.state_dict()
+    to_load: dict[str, Tensor] = {}
+    for key, value in state.items():
+        if key not in own:
+            report.unexpected.append(prefix + key)
+            continue
+        if key == "pos_embed" and pos_grid is not None:
+            value = _resize_pos_embed(value, pos_grid)
+        if value.shape != own[key].shape:
+            raise ValueError(
+                f"{report.path}: '{key}' has shape {tuple(value.shape)} but the model expects "
+                f"{tuple(own[key].shape)} for {prefix}{key}; pick the model size (and register-token "
+                "counts) that match the checkpoint"
+            )
+        to_load[key] = value.to(own[key].dtype)
+    module.load_state_dict(to_load, strict=False)
+    report.loaded += sorted(prefix + k for k in to_load)
+    report.missing += sorted(prefix + k for k in set(own) - set(to_load))
+
+
+def _warn(report: WeightsReport) -> None:
+    if report.missing or report.unexpected:
+        warnings.warn(
+            f"weights {report.path} ({report.format} format): loaded {len(report.loaded)} tensors; "
+            f"missing {len(report.missing)}: {report.missing[:8]}; "
+            f"unexpected {len(report.unexpected)}: {report.unexpected[:8]}",
+            stacklevel=3,
+        )
+
+
+def load_encoder_weights(encoder: PatchEncoder, path: str | Path) -> WeightsReport:
+    """Load a local timm-format or original-DINOv2 ViT/14 checkpoint into ``encoder``. Never downloads.
+
+    Keys the encoder lacks and encoder parameters the checkpoint lacks are reported with a warning and
+    returned in the :class:`WeightsReport`; a shape mismatch (a checkpoint of another size) is an error.
+    """
+    state, fmt, ignored = convert_encoder_state_dict(_read(path, "encoder"))
+    report = WeightsReport(path=str(path), format=fmt, ignored=ignored)
+    _load_matching(encoder, state, "", report, pos_grid=encoder.cfg.pos_grid)
+    _warn(report)
+    return report
+
+
+def load_vggt_weights(
+    encoder: PatchEncoder, transformer: GeometryTransformer, path: str | Path
+) -> WeightsReport:
+    """Load a local VGGT checkpoint's aggregator (its DINOv2 patch embed and its frame / global blocks,
+    camera and register tokens) into the encoder and the geometry transformer, by name.
+
+    VGGT's aggregator matches the ``large`` size with ``encoder_registers=4`` and ``num_register_tokens=4``.
+    Keys outside the aggregator (VGGT's camera, depth, point and track heads) are listed as ignored.
+    Reported keys carry the model's prefixes (``encoder.``, ``transformer.``).
+    """
+    state = _read(path, "VGGT")
+    enc_prefix, agg_prefix = "aggregator.patch_embed.", "aggregator."
+    enc_state = {k[len(enc_prefix) :]: v for k, v in state.items() if k.startswith(enc_prefix)}
+    agg_state = {k[len(agg_prefix) :]: v for k, v in state.items() if k.startswith(agg_prefix)}
+    agg_state = {k: v for k, v in agg_state.items() if not k.startswith("patch_embed.")}
+    enc_state, _, ignored = convert_encoder_state_dict(enc_state)
+    report = WeightsReport(path=str(path), format="vggt", ignored=[enc_prefix + k for k in ignored])
+    report.ignored += sorted(k for k in state if not k.startswith(agg_prefix))
+    _load_matching(encoder, enc_state, "encoder.", report, pos_grid=encoder.cfg.pos_grid)
+    _load_matching(transformer, agg_state, "transformer.", report)
+    _warn(report)
+    return report
