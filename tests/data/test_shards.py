@@ -5,6 +5,8 @@ from __future__ import annotations
 import io
 import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -188,9 +190,33 @@ def test_conversion_resumes_and_verifies(tmp_path, synthetic_src):
     convert_dataset(synthetic_src, out, size=16, workers=1, samples_per_scene=2, progress=False)
     assert verify_shards(out) == []
 
-    # Other options: a different size is a different conversion, never a silent reuse.
+    # Other options or another evaluation index: a different conversion, never a silent reuse.
     other = convert_dataset(synthetic_src, out, size=20, samples_per_scene=2, progress=False)
     assert other["config"]["size"] == 20
+    index = json.loads((synthetic_src / "evaluation_index.json").read_text())
+    index[sorted(index)[0]] = None
+    changed = tmp_path / "index.json"
+    changed.write_text(json.dumps(index))
+    fewer = convert_dataset(
+        synthetic_src, out, size=20, samples_per_scene=2, eval_index=changed, progress=False
+    )
+    assert fewer["splits"]["test"]["samples"] == other["splits"]["test"]["samples"] - 1
+    assert fewer["splits"]["test"]["skips"] == {"not_in_evaluation_index": 1}
+
+
+def test_command_line_scripts(tmp_path):
+    root = Path(__file__).resolve().parents[2] / "data_prep"
+    src, out = tmp_path / "src", tmp_path / "out"
+    run = [sys.executable, str(root / "synthetic.py"), "--out", str(src), "--scenes", "2", "--test-scenes", "1",
+           "--frames", "6", "--height", "16", "--width", "24", "--seed", "5"]  # fmt: skip
+    subprocess.run(run, check=True, capture_output=True)
+    assert (src / "train" / "index.json").exists() and (src / "evaluation_index.json").exists()
+    convert = [sys.executable, str(root / "to_shards.py"), "--src", str(src), "--out", str(out), "--size", "14",
+               "--workers", "2", "--samples-per-scene", "2"]  # fmt: skip
+    done = subprocess.run(convert, check=True, capture_output=True, text=True)
+    summary = json.loads(done.stdout)
+    assert summary["train"]["samples"] == 4 and summary["test"]["samples"] == 1
+    assert json.loads((out / "manifest.json").read_text())["config"]["size"] == 14
 
 
 def test_missing_source_is_a_clear_error(tmp_path):

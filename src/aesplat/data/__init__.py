@@ -1,10 +1,17 @@
-"""Data: synthetic scenes, chunk -> shard conversion, shard streaming and the DataModule (SPEC section 6)."""
+"""Data: synthetic scenes, chunk -> shard conversion, shard streaming and the DataModule (SPEC section 6).
+
+``DataModule`` is imported lazily: the data-preparation scripts never pay for importing Lightning.
+"""
+
+from typing import TYPE_CHECKING
 
 from .curriculum import GapCurriculum
-from .datamodule import DataModule
 from .shards import convert_dataset, verify_shards
 from .stream import flip_views
 from .synthetic import generate_dataset, render_scene, sample_scene
+
+if TYPE_CHECKING:
+    from .datamodule import DataModule
 
 __all__ = [
     "DataModule",
@@ -16,3 +23,11 @@ __all__ = [
     "sample_scene",
     "verify_shards",
 ]
+
+
+def __getattr__(name: str):
+    if name == "DataModule":
+        from .datamodule import DataModule
+
+        return DataModule
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,9 @@ from .curriculum import GapCurriculum
 from .stream import EvalStream, StreamConfig, TrainStream, counter_totals, new_counters
 
 log = logging.getLogger("aesplat.data")
+# Lightning warns that an IterableDataset's __len__ may be wrong with several workers; ours is exact by
+# construction (each worker yields its fixed share of the rank's batches).
+warnings.filterwarnings("ignore", message=r".*Your `IterableDataset` has `__len__` defined.*")
 
 
 class DataModule(L.LightningDataModule):
