@@ -107,15 +107,15 @@ def test_single_gaussian_centre_and_footprint():
     out = render(g, ext, intr, size, size, backend="torch")
     centre = size // 2  # the optical axis passes through the centre of the middle pixel
     torch.testing.assert_close(out.color[0, 0, :, centre, centre], opacity * torch.tensor([0.9, 0.4, 0.1]))
-    assert out.alpha[0, 0, 0, centre, centre] == pytest.approx(opacity, rel=1e-6)
-    assert out.depth[0, 0, 0, centre, centre] == pytest.approx(z, rel=1e-6)
+    assert out.alpha[0, 0, 0, centre, centre] == pytest.approx(opacity, rel=1e-5)
+    assert out.depth[0, 0, 0, centre, centre] == pytest.approx(z, rel=1e-5)
     focal = intr[0, 0, 0, 0].item() * size
     var = (focal * scale / z) ** 2 + 0.3  # EWA variance in pixels^2, low-pass included
     for d in range(1, 8):
         expect = opacity * math.exp(-0.5 * d * d / var)
         got = out.alpha[0, 0, 0, centre, centre + d].item()
         assert got == pytest.approx(expect if expect >= 1 / 255 else 0.0, rel=1e-5, abs=1e-7)
-        assert out.alpha[0, 0, 0, centre + d, centre].item() == pytest.approx(got, rel=1e-6, abs=1e-9)
+        assert out.alpha[0, 0, 0, centre + d, centre].item() == pytest.approx(got, rel=1e-5, abs=1e-9)
     assert (out.alpha[0, 0, 0] > 0).sum() < size * size / 4  # a compact footprint
 
 
@@ -163,4 +163,35 @@ def test_tiling_options_do_not_change_the_result():
     for options in ({"tile_size": 8, "chunk": 3}, {"tile_size": 5, "chunk": 64}, {"max_elements": 100}):
         other = render(g, ext, intr, 30, 41, backend="torch", **options)
         for a, b in zip((other.color, other.depth, other.alpha), (base.color, base.depth, base.alpha)):
-            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+            torch.testing.assert_close(a, b, rtol=3e-5, atol=1e-5)
+
+
+def test_pixels_that_stop_early_match_reference():
+    """Many opaque layers: pixels stop (T would drop below 1e-4) in an early chunk while their tile goes on."""
+    g = random_scene(60, b=1, sh_degree=0, seed=8)
+    means = g.means.clone()
+    means[0, :, 2] = torch.linspace(2.0, 4.0, 60, dtype=torch.float64)
+    g = Gaussians(means, g.quats, g.scales * 3, torch.full_like(g.opacities, 0.95), g.sh)
+    ext, intr = cameras(1, 1)
+    weights = [torch.rand(1, 1, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
+    bg = torch.rand(1, 3, dtype=torch.float64)
+    ref_out, ref_grad = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
+    out, grad = _outputs_and_grads(
+        _torch_fn(chunk=3, tile_size=8), _leaves(g, ext, intr, bg, torch.float64), weights
+    )
+    trans = 1 - ref_out[2]
+    assert ((trans > 1e-5) & (trans < 1e-3)).float().mean() > 0.2  # many pixels stopped near T = 1e-4
+    for a, b in zip(out + grad, ref_out + ref_grad):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
+
+
+@pytest.mark.slow
+def test_compiled_kernels_match_eager():
+    g = random_scene(60, b=2, sh_degree=1, seed=9, dtype=torch.float32)
+    ext, intr = cameras(2, 2, dtype=torch.float32)
+    weights = [torch.rand(2, 2, c, H, W) for c in (3, 1, 1)]
+    bg = torch.rand(2, 3)
+    eager = _outputs_and_grads(_torch_fn(), _leaves(g, ext, intr, bg, torch.float32), weights)
+    compiled = _outputs_and_grads(_torch_fn(compile=True), _leaves(g, ext, intr, bg, torch.float32), weights)
+    for a, b in zip(eager[0] + eager[1], compiled[0] + compiled[1]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)

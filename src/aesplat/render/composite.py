@@ -13,6 +13,8 @@ Gaussian that would bring the transmittance to 1e-4 or below.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 
@@ -24,153 +26,208 @@ T_MIN = 1e-4
 _PACK = 10  # packed per-Gaussian row: mean x, y | conic a, b, c | opacity | r, g, b | depth
 
 
-def _tile_pixels(
-    tiles: Tensor, bins: TileBins, height: int, width: int, dtype: torch.dtype
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Pixel-centre coordinates px, py [G, P] of the given tiles, and a mask [G, P] of pixels off the image."""
+def _pixel_monomials(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """[6, P] rows 1, u, v, u^2, u v, v^2 of pixel centres relative to the tile centre (same for all tiles)."""
+    local = torch.arange(tile_size * tile_size, device=device)
+    u = (local % tile_size).to(dtype) + 0.5 - tile_size / 2
+    v = (local // tile_size).to(dtype) + 0.5 - tile_size / 2
+    return torch.stack([torch.ones_like(u), u, v, u * u, u * v, v * v])
+
+
+def _tile_geometry(tiles: Tensor, bins: TileBins, height: int, width: int, dtype: torch.dtype):
+    """Tile centres [G, 2] in pixels, and a mask [G, P] of pixels that fall off the image."""
     ts = bins.tile_size
-    local = torch.arange(ts * ts, device=tiles.device)
     rem = tiles % (bins.tiles_x * bins.tiles_y)
     ty, tx = rem // bins.tiles_x, rem % bins.tiles_x
-    xi = tx[:, None] * ts + local % ts
-    yi = ty[:, None] * ts + local // ts
-    return xi.to(dtype) + 0.5, yi.to(dtype) + 0.5, (xi >= width) | (yi >= height)
-
-
-def _alphas(p: Tensor, px: Tensor, py: Tensor):
-    """Alpha of each chunk Gaussian at each pixel. p [a, C, 10] packed rows, px, py [a, P] -> [a, P, C] each."""
-    dx = p[:, None, :, 0] - px[:, :, None]
-    dy = p[:, None, :, 1] - py[:, :, None]
-    ca, cb, cc = p[:, None, :, 2], p[:, None, :, 3], p[:, None, :, 4]
-    sigma = 0.5 * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-    gauss = torch.exp(-sigma)
-    raw = p[:, None, :, 5] * gauss
-    alpha = raw.clamp_max(ALPHA_MAX)
-    used = (sigma >= 0) & (alpha >= ALPHA_MIN)
-    alpha = torch.where(used, alpha, torch.zeros_like(alpha))
-    return dx, dy, gauss, raw, alpha, used
-
-
-def _transmittance(alpha: Tensor, t0: Tensor, done0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Inclusive products [a, P, C], the transmittance before each Gaussian, and which ones are composited."""
-    prod = t0[..., None] * torch.cumprod(1.0 - alpha, dim=-1)
-    before = torch.cat([t0[..., None], prod[..., :-1]], dim=-1)
-    incl = (prod > T_MIN) & ~done0[..., None]
-    return prod, before, incl
-
-
-class _Composite(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, packed: Tensor, bins: TileBins, height: int, width: int, chunk: int, max_elements: int):
-        npix = bins.tile_size**2
-        nt = bins.num_tiles
-        rgb = packed.new_zeros(nt, npix, 3)
-        depth = packed.new_zeros(nt, npix)
-        trans = packed.new_ones(nt, npix)
-        counts = bins.counts
-        tiles = torch.sort(counts, descending=True, stable=True).indices
-        tiles = tiles[: int((counts > 0).sum())]  # non-empty tiles, longest list first
-        group = max(1, max_elements // (npix * chunk))
-        saved = []
-        for g0 in range(0, tiles.numel(), group):
-            t = tiles[g0 : g0 + group]
-            steps = _forward_group(packed, bins, t, height, width, chunk, rgb, depth, trans)
-            saved.append((t, steps))
-        ctx.bins, ctx.saved, ctx.hw, ctx.chunk = bins, saved, (height, width), chunk
-        ctx.save_for_backward(packed, trans)
-        return rgb, depth, trans
-
-    @staticmethod
-    def backward(ctx, g_rgb: Tensor, g_depth: Tensor, g_trans: Tensor):
-        packed, trans = ctx.saved_tensors
-        grad = torch.zeros_like(packed)
-        g_rgb = torch.zeros_like(trans)[..., None].expand(-1, -1, 3) if g_rgb is None else g_rgb
-        g_depth = torch.zeros_like(trans) if g_depth is None else g_depth
-        g_trans = torch.zeros_like(trans) if g_trans is None else g_trans
-        h, w = ctx.hw
-        for t, steps in ctx.saved:
-            _backward_group(packed, ctx.bins, t, h, w, ctx.chunk, steps, g_rgb, g_depth, g_trans, trans, grad)
-        return grad, None, None, None, None, None
+    centre = torch.stack([tx, ty], -1).to(dtype) * ts + ts / 2
+    local = torch.arange(ts * ts, device=tiles.device)
+    off = (tx[:, None] * ts + local % ts >= width) | (ty[:, None] * ts + local // ts >= height)
+    return centre, off
 
 
 def _gather_chunk(
     packed: Tensor, bins: TileBins, starts: Tensor, counts: Tensor, k0: int, chunk: int
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Packed rows [a, C, 10] of list positions k0 .. k0 + C of the given tiles; padding rows have opacity 0."""
+    """Packed rows [a, C, 10] of list positions k0 .. k0 + C of the given tiles, their ids and validity."""
     pos = k0 + torch.arange(chunk, device=packed.device)
     valid = pos[None] < counts[:, None]  # [a, C]
     idx = (starts[:, None] + pos[None]).clamp_max(bins.order.numel() - 1)
     gid = torch.where(valid, bins.order[idx], torch.zeros_like(idx))
-    p = packed[gid]
-    p[..., 5] = torch.where(valid, p[..., 5], torch.zeros_like(p[..., 5]))
-    return p, gid, valid
+    return packed[gid], gid, valid
 
 
-def _forward_group(packed, bins, tiles, height, width, chunk, rgb, depth, trans):
-    """Composite one group of tiles in place; returns per-chunk (active local ids, entry T, entry done)."""
-    px, py, off = _tile_pixels(tiles, bins, height, width, packed.dtype)
+def _exponent(p: Tensor, centre: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+    """Coefficients [a, C, 6] with log(o) - sigma = coeffs @ monomials, and tile-relative means [a, C, 2].
+
+    sigma = 0.5 a dx^2 + b dx dy + 0.5 c dy^2 with dx = m - pixel is expanded in the pixel's offset from the
+    tile centre, so one small matmul gives the exponent for every (Gaussian, pixel) pair.
+    """
+    m = p[..., 0:2] - centre[:, None]  # [a, C, 2]
+    mx, my = m.unbind(-1)
+    a, b, c = p[..., 2], p[..., 3], p[..., 4]
+    f = 0.5 * a * mx * mx + b * mx * my + 0.5 * c * my * my
+    log_o = torch.where(valid, torch.log(p[..., 5].clamp_min(1e-30)), torch.full_like(f, -1e4))
+    coeffs = torch.stack([log_o - f, a * mx + b * my, b * mx + c * my, -0.5 * a, -b, -0.5 * c], dim=-1)
+    return coeffs, m
+
+
+def _alphas(coeffs: Tensor, mono: Tensor) -> tuple[Tensor, Tensor]:
+    """Unclamped o exp(-sigma) and the composited alpha (clamped to 0.99, 0 below 1/255), both [a, C, P]."""
+    raw = torch.exp(coeffs @ mono)
+    alpha = torch.where(raw >= ALPHA_MIN, raw.clamp_max(ALPHA_MAX), torch.zeros_like(raw))
+    return raw, alpha
+
+
+def _transmittance(alpha: Tensor, t0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Transmittance after each Gaussian [a, C, P], weights alpha * T_before [a, C, P] and inclusion mask.
+
+    ``t0`` [a, P] is the transmittance entering the chunk, 0 for pixels that have already stopped.
+    """
+    prod = torch.cumprod(1.0 - alpha, dim=1) * t0[:, None]
+    incl = prod > T_MIN
+    wgt = torch.where(incl, alpha * prod / (1.0 - alpha), torch.zeros_like(prod))
+    return prod, wgt, incl
+
+
+def _forward_chunk(p: Tensor, centre: Tensor, valid: Tensor, t0: Tensor, mono: Tensor):
+    """One compositing step for a tiles: colour+depth sums [a, 4, P], transmittance after the step [a, P]
+    and which pixels stopped in it [a, P] (t0 is 0 for pixels that had stopped before)."""
+    coeffs, _ = _exponent(p, centre, valid)
+    _, alpha = _alphas(coeffs, mono)
+    prod, wgt, incl = _transmittance(alpha, t0)
+    f_add = p[..., 6:10].transpose(1, 2) @ wgt
+    t_new = torch.where(incl, prod, t0[:, None]).amin(1)
+    return f_add, t_new, prod[:, -1] <= T_MIN
+
+
+def _backward_chunk(
+    p: Tensor, centre: Tensor, valid: Tensor, t0: Tensor, mono: Tensor, gf: Tensor, suffix: Tensor
+):
+    """Gradient rows [a, C, 10] of one step, and the suffix sum [a, P] entering the previous step.
+
+    gf [a, 4, P] is d loss / d (colour, depth sums); suffix [a, P] is sum over later Gaussians of
+    w_j d loss / d w_j plus g_T T_final.
+    """
+    coeffs, m = _exponent(p, centre, valid)
+    raw, alpha = _alphas(coeffs, mono)
+    prod, wgt, incl = _transmittance(alpha, t0)
+    gi = p[..., 6:10] @ gf  # [a, C, P]: d L / d w_i per pixel
+    wg = wgt * gi
+    total = suffix + wg.sum(1)
+    after = total[:, None] - wg.cumsum(1)  # sum over j > i
+    d_alpha = (prod * gi - after) / (1.0 - alpha)
+    q = torch.where(incl & (alpha > 0) & (raw < ALPHA_MAX), d_alpha * raw, torch.zeros_like(raw))
+    # d loss / d sigma = -q; the pixel sums below are polynomial moments of q (one small matmul).
+    s0, su, sv, suu, suv, svv = (q @ mono.transpose(0, 1)).unbind(-1)
+    mx, my = m.unbind(-1)
+    a, b, c = p[..., 2], p[..., 3], p[..., 4]
+    sdx, sdy = mx * s0 - su, my * s0 - sv  # sum q dx, sum q dy
+    sdxx = mx * mx * s0 - 2 * mx * su + suu
+    sdxy = mx * my * s0 - mx * sv - my * su + suv
+    sdyy = my * my * s0 - 2 * my * sv + svv
+    g_opacity = s0 / p[..., 5].clamp_min(1e-30)
+    g_geo = torch.stack(
+        [-(a * sdx + b * sdy), -(b * sdx + c * sdy), -0.5 * sdxx, -sdxy, -0.5 * sdyy, g_opacity], -1
+    )
+    rows = torch.cat([g_geo, wgt @ gf.transpose(1, 2)], dim=-1) * valid[..., None]
+    return rows, total
+
+
+_COMPILED: dict[str, Callable] = {}
+
+
+def _chunk_functions(compiled: bool) -> tuple[Callable, Callable]:
+    """The per-step kernels, eager or through ``torch.compile`` (compiled once per process, then cached)."""
+    if not compiled:
+        return _forward_chunk, _backward_chunk
+    if not _COMPILED:
+        _COMPILED["forward"] = torch.compile(_forward_chunk, dynamic=True)
+        _COMPILED["backward"] = torch.compile(_backward_chunk, dynamic=True)
+    return _COMPILED["forward"], _COMPILED["backward"]
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(
+        ctx,
+        packed: Tensor,
+        bins: TileBins,
+        height: int,
+        width: int,
+        chunk: int,
+        max_elements: int,
+        compiled: bool,
+    ):
+        fwd, bwd = _chunk_functions(compiled)
+        npix = bins.tile_size**2
+        nt = bins.num_tiles
+        feat = packed.new_zeros(nt, 4, npix)  # r, g, b, depth sums
+        trans = packed.new_ones(nt, npix)
+        counts = bins.counts
+        tiles = torch.sort(counts, descending=True, stable=True).indices
+        tiles = tiles[: int((counts > 0).sum())]  # non-empty tiles, longest list first
+        group = max(1, max_elements // (npix * chunk))
+        mono = _pixel_monomials(bins.tile_size, packed.dtype, packed.device)
+        saved = []
+        for g0 in range(0, tiles.numel(), group):
+            t = tiles[g0 : g0 + group]
+            saved.append((t, _forward_group(fwd, packed, bins, t, height, width, chunk, mono, feat, trans)))
+        ctx.bins, ctx.saved, ctx.hw, ctx.chunk, ctx.bwd = bins, saved, (height, width), chunk, bwd
+        ctx.save_for_backward(packed, trans)
+        return feat, trans
+
+    @staticmethod
+    def backward(ctx, g_feat: Tensor | None, g_trans: Tensor | None):
+        packed, trans = ctx.saved_tensors
+        grad = torch.zeros_like(packed)
+        g_feat = torch.zeros(trans.shape[0], 4, trans.shape[1]).to(trans) if g_feat is None else g_feat
+        g_trans = torch.zeros_like(trans) if g_trans is None else g_trans
+        mono = _pixel_monomials(ctx.bins.tile_size, packed.dtype, packed.device)
+        h, w = ctx.hw
+        for t, steps in ctx.saved:
+            _backward_group(
+                ctx.bwd, packed, ctx.bins, t, h, w, ctx.chunk, mono, steps, g_feat, g_trans, trans, grad
+            )
+        return grad, None, None, None, None, None, None
+
+
+def _forward_group(fwd, packed, bins, tiles, height, width, chunk, mono, feat, trans):
+    """Composite one group of tiles into ``feat`` / ``trans``; returns per chunk (active ids, entry T)."""
+    centre, off = _tile_geometry(tiles, bins, height, width, packed.dtype)
     starts, counts = bins.starts[tiles], bins.counts[tiles]
-    t_loc = packed.new_ones(tiles.numel(), px.shape[1])
-    done = off.clone()  # pixels off the image never need compositing
-    c_loc = packed.new_zeros(tiles.numel(), px.shape[1], 3)
-    d_loc = packed.new_zeros(tiles.numel(), px.shape[1])
+    t_loc = packed.new_ones(tiles.numel(), mono.shape[1])
+    live = (~off).to(packed.dtype)  # 0 once a pixel has stopped (and for pixels off the image)
+    f_loc = packed.new_zeros(tiles.numel(), 4, mono.shape[1])
     act = torch.arange(tiles.numel(), device=packed.device)
     steps = []
     k0 = 0
     while act.numel() > 0:
-        p, _, _ = _gather_chunk(packed, bins, starts[act], counts[act], k0, chunk)
-        t0, done0 = t_loc[act], done[act]
-        steps.append((act, t0, done0))
-        _, _, _, _, alpha, _ = _alphas(p, px[act], py[act])
-        prod, before, incl = _transmittance(alpha, t0, done0)
-        wgt = torch.where(incl, alpha * before, torch.zeros_like(alpha))  # [a, P, C]
-        c_loc[act] += torch.bmm(wgt, p[..., 6:9])
-        d_loc[act] += torch.bmm(wgt, p[..., 9:10])[..., 0]
-        t_loc[act] = torch.where(incl, prod, t0[..., None]).amin(-1)
-        done[act] = done0 | (prod[..., -1] <= T_MIN)
+        p, _, valid = _gather_chunk(packed, bins, starts[act], counts[act], k0, chunk)
+        live_act = live[act]
+        t0 = t_loc[act] * live_act
+        steps.append((act, t0))
+        f_add, t_new, stopped = fwd(p, centre[act], valid, t0, mono)
+        f_loc[act] += f_add
+        t_loc[act] = torch.where(live_act > 0, t_new, t_loc[act])
+        live_act = torch.where(stopped, torch.zeros_like(live_act), live_act)
+        live[act] = live_act
         k0 += chunk
-        alive = (counts[act] > k0) & ~done[act].all(-1)
-        act = act[alive]
-    rgb[tiles], depth[tiles], trans[tiles] = c_loc, d_loc, t_loc
+        act = act[(counts[act] > k0) & (live_act > 0).any(-1)]
+    feat[tiles], trans[tiles] = f_loc, t_loc
     return steps
 
 
-def _backward_group(packed, bins, tiles, height, width, chunk, steps, g_rgb, g_depth, g_trans, trans, grad):
+def _backward_group(bwd, packed, bins, tiles, height, width, chunk, mono, steps, g_feat, g_trans, trans, grad):
     """Accumulate d loss / d packed rows for one group of tiles into ``grad`` [M, 10]."""
-    px, py, _ = _tile_pixels(tiles, bins, height, width, packed.dtype)
+    centre, _ = _tile_geometry(tiles, bins, height, width, packed.dtype)
     starts, counts = bins.starts[tiles], bins.counts[tiles]
-    gc_all, gd_all = g_rgb[tiles], g_depth[tiles]
-    # d L / d alpha_i through the final transmittance: -g_T * T_final / (1 - alpha_i); folded into the suffix.
-    suffix = g_trans[tiles] * trans[tiles]  # [G, P]: sum_{j>i} w_j g_j + g_T T_final, built back to front
+    gf_all = g_feat[tiles]  # [G, 4, P]
+    # Through T_final, d L / d alpha_i gets -g_T T_final / (1 - alpha_i): it joins the suffix sum below.
+    suffix = g_trans[tiles] * trans[tiles]  # [G, P]: sum over later j of w_j g_j, plus g_T T_final
     for k in range(len(steps) - 1, -1, -1):
-        act, t0, done0 = steps[k]
+        act, t0 = steps[k]
         p, gid, valid = _gather_chunk(packed, bins, starts[act], counts[act], k * chunk, chunk)
-        dx, dy, gauss, raw, alpha, used = _alphas(p, px[act], py[act])
-        _, before, incl = _transmittance(alpha, t0, done0)
-        wgt = torch.where(incl, alpha * before, torch.zeros_like(alpha))  # [a, P, C]
-        gc, gd = gc_all[act], gd_all[act]  # [a, P, 3], [a, P]
-        gi = torch.bmm(gc, p[..., 6:9].transpose(1, 2)) + gd[..., None] * p[:, None, :, 9]  # [a, P, C]
-        wg = wgt * gi
-        after = suffix[act][..., None] + (wg.flip(-1).cumsum(-1).flip(-1) - wg)  # sum over later j
-        suffix[act] = suffix[act] + wg.sum(-1)
-        d_alpha = before * gi - after / (1.0 - alpha)
-        d_alpha = torch.where(incl & used & (raw < ALPHA_MAX), d_alpha, torch.zeros_like(d_alpha))
-        d_sigma = -d_alpha * alpha
-        ca, cb, cc = p[:, None, :, 2], p[:, None, :, 3], p[:, None, :, 4]
-        g = torch.stack(
-            [
-                (d_sigma * (ca * dx + cb * dy)).sum(1),
-                (d_sigma * (cb * dx + cc * dy)).sum(1),
-                0.5 * (d_sigma * dx * dx).sum(1),
-                (d_sigma * dx * dy).sum(1),
-                0.5 * (d_sigma * dy * dy).sum(1),
-                (d_alpha * gauss).sum(1),
-            ],
-            dim=-1,
-        )  # [a, C, 6]
-        g_col = torch.bmm(wgt.transpose(1, 2), gc)  # [a, C, 3]
-        g_z = torch.bmm(wgt.transpose(1, 2), gd[..., None])  # [a, C, 1]
-        rows = torch.cat([g, g_col, g_z], dim=-1) * valid[..., None]
+        rows, suffix[act] = bwd(p, centre[act], valid, t0, mono, gf_all[act], suffix[act])
         grad.index_add_(0, gid.reshape(-1), rows.reshape(-1, _PACK))
 
 
@@ -194,17 +251,14 @@ def composite(
     [tiles, pixels, chunk] blocks (memory scales with it); ``chunk`` is the list step.
     """
     packed = torch.cat([means2d, conics, opacities[:, None], colors, depths[:, None]], dim=-1)
-    rgb, depth, trans = _Composite.apply(packed, bins, height, width, chunk, max_elements)
-    return (
-        _untile(rgb, bins, height, width),
-        _untile(depth[..., None], bins, height, width),
-        _untile(trans[..., None], bins, height, width),
-    )
+    feat, trans = _Composite.apply(packed, bins, height, width, chunk, max_elements, compiled)
+    feat = _untile(feat, bins, height, width)
+    return feat[:, :3], feat[:, 3:], _untile(trans[:, None], bins, height, width)
 
 
 def _untile(x: Tensor, bins: TileBins, height: int, width: int) -> Tensor:
-    """[tiles, P, D] in tile order -> [C, D, H, W] cropped to the image."""
-    ts, d = bins.tile_size, x.shape[-1]
-    x = x.reshape(bins.num_cameras, bins.tiles_y, bins.tiles_x, ts, ts, d)
-    x = x.permute(0, 5, 1, 3, 2, 4).reshape(bins.num_cameras, d, bins.tiles_y * ts, bins.tiles_x * ts)
+    """[tiles, D, P] in tile order -> [C, D, H, W] cropped to the image."""
+    ts, d = bins.tile_size, x.shape[1]
+    x = x.reshape(bins.num_cameras, bins.tiles_y, bins.tiles_x, d, ts, ts)
+    x = x.permute(0, 3, 1, 4, 2, 5).reshape(bins.num_cameras, d, bins.tiles_y * ts, bins.tiles_x * ts)
     return x[:, :, :height, :width]
