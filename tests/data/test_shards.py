@@ -141,17 +141,18 @@ def test_invalid_scenes_are_skipped_and_counted(tmp_path, scene):
     corrupt = chunk_entry("corrupt", images, c2w, k)
     corrupt["images"][2] = torch.tensor(list(b"not a jpeg at all"), dtype=torch.uint8)
     short = chunk_entry("short", images[:2], c2w[:2], k[:2])
+    brief = chunk_entry("brief", images[:4], c2w[:4], k[:4])  # no context gap of 4 frames fits
     evaluation = {"good": {"context": [0, 7], "target": [3], "overlap": 0.4}, "wide": None, "absent": None,
                   "missing": {"context": [0, 2], "target": [1], "overlap": 0.9}}  # fmt: skip
-    train = [good, wrong_shape, wide, static, corrupt, short]
+    train = [good, wrong_shape, wide, static, corrupt, short, brief]
     test = [good, wide, chunk_entry("unindexed", images, c2w, k)]
     write_source(tmp_path / "src", train, test, evaluation)
-    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=2, max_gap=7,
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=4, max_gap=7,
                                samples_per_scene=4, progress=False)  # fmt: skip
     tr, te = manifest["splits"]["train"], manifest["splits"]["test"]
     assert tr["skips"] == {"corrupt_image": 1, "degenerate_baseline": 1, "fov_too_wide": 1, "too_few_frames": 1,
-                           "wrong_shape": 1}  # fmt: skip
-    assert tr["scenes"] == 1 and tr["scenes_seen"] == 6 and tr["samples"] == 4
+                           "wrong_shape": 1, "shorter_than_min_gap": 1}  # fmt: skip
+    assert tr["scenes"] == 1 and tr["scenes_seen"] == 7 and tr["samples"] == 4
     assert te["skips"] == {"fov_too_wide": 1, "not_in_evaluation_index": 1}
     assert te["samples"] == 1 and te["evaluation_index_missing"] == 1
     for split in ("train", "test"):

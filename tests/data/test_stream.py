@@ -166,6 +166,14 @@ def test_stream_yields_only_gaps_allowed_at_the_step(synthetic_shards):
     assert dm.data_errors()["train/curriculum_skipped"] > 0
 
 
+def test_samples_with_too_few_targets_are_passed_over(synthetic_shards):
+    dm = module(synthetic_shards, num_target_views=2, train_batches_per_epoch=4)
+    for b in dm.train_dataloader():  # gap-2 samples hold a single target
+        assert b.target.images.shape[1] == 2
+        assert torch.all(b.target.index[:, 0] < b.target.index[:, 1])
+    assert dm.data_errors()["train/too_few_targets"] > 0 and dm.data_errors()["train/corrupt_samples"] == 0
+
+
 def test_unsatisfiable_curriculum_is_a_clear_error(synthetic_shards):
     dm = module(synthetic_shards, gap_initial=(50, 60), gap_final=(50, 60))
     with pytest.raises(RuntimeError, match="curriculum"):

@@ -61,8 +61,8 @@ class ConvertConfig:
     def __post_init__(self) -> None:
         if self.size < 1:
             raise ValueError(f"size must be a positive number of pixels, got {self.size}")
-        if not 1 <= self.min_gap <= self.max_gap:
-            raise ValueError(f"need 1 <= min_gap <= max_gap, got {self.min_gap}, {self.max_gap}")
+        if not 2 <= self.min_gap <= self.max_gap:  # a target must fit strictly between the context frames
+            raise ValueError(f"need 2 <= min_gap <= max_gap, got {self.min_gap}, {self.max_gap}")
         if self.samples_per_scene < 1 or self.train_targets < 1:
             raise ValueError("samples_per_scene and train_targets must be at least 1")
 
@@ -143,18 +143,18 @@ def training_views(
 ) -> list[tuple[list[int], list[int]]]:
     """Context / target frame ids of the training samples of one scene.
 
-    Gaps are stratified over [min_gap, max_gap] (clipped to the scene's length) so every scene covers the
-    whole curriculum range; the first sample always uses the smallest gap. Targets lie strictly between.
+    Gaps are stratified over [min_gap, max_gap] (clipped to the scene's length, which must exceed min_gap)
+    so every scene covers the whole curriculum range; the first sample always uses the smallest gap. Up to
+    ``train_targets`` targets lie strictly between the context frames.
     """
-    hi = min(cfg.max_gap, num_frames - 1)
-    lo = min(cfg.min_gap, hi)
+    lo, hi = cfg.min_gap, min(cfg.max_gap, num_frames - 1)
+    if hi < lo:
+        raise ValueError(f"a scene of {num_frames} frames has no context gap of at least {lo}")
     n = cfg.samples_per_scene
     edges = np.linspace(lo, hi + 1, n + 1)
     views = []
     for i in range(n):
         gap = lo if i == 0 else int(np.clip(np.floor(rng.uniform(edges[i], edges[i + 1])), lo, hi))
-        if gap < 2:
-            continue
         c0 = int(rng.integers(0, num_frames - gap))
         between = np.arange(c0 + 1, c0 + gap)
         targets = sorted(
@@ -232,6 +232,8 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
         scenes_seen += 1
         reason = validate_scene(scene, job.cfg) if isinstance(scene, dict) else "missing_field"
         key = str(scene.get("key", "")) if isinstance(scene, dict) else ""
+        if reason is None and job.eval_index is None and len(scene["images"]) <= job.cfg.min_gap:
+            reason = "shorter_than_min_gap"
         if reason is None and job.eval_index is not None:
             entry = job.eval_index.get(key)
             if entry is None:

@@ -33,7 +33,7 @@ from .curriculum import GapCurriculum
 
 log = logging.getLogger("aesplat.data")
 
-COUNTERS = ("corrupt_samples", "corrupt_shards", "curriculum_skipped")
+COUNTERS = ("corrupt_samples", "corrupt_shards", "curriculum_skipped", "too_few_targets")
 REFLECT = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
 
 
@@ -296,14 +296,17 @@ class TrainStream(_ShardStream):
                     )
                 continue
             shard, key, raw = item
-            try:
-                gap = int(json.loads(raw["meta.json"])["gap"])
+            try:  # filter on the metadata before decoding any image
+                meta = json.loads(raw["meta.json"])
+                gap, targets = int(meta["gap"]), len(meta["target"])
             except Exception:  # noqa: BLE001
-                gap = None  # decode_sample counts it as corrupt
-            step = int(self.step[0])
-            if gap is not None and not self.curriculum.accepts(gap, step):
+                gap = targets = None  # decode_sample counts it as corrupt
+            if gap is not None and not self.curriculum.accepts(gap, int(self.step[0])):
                 self._count("curriculum_skipped")
                 gaps_seen.add(gap)
+                continue
+            if targets is not None and targets < (self.cfg.num_target_views or 1):
+                self._count("too_few_targets")
                 continue
             sample = self._decode(shard, key, raw, rng)
             if sample is None:
