@@ -6,19 +6,22 @@
 SRC holds train/ and test/ folders of *.torch chunks (each with index.json). Writes OUT/train/*.tar,
 OUT/test/*.tar and OUT/manifest.json (counts, skipped scenes with reasons, SHA-256 per shard). Rerunning the
 same command resumes: completed shards whose checksum matches are kept.
+
+    python data_prep/to_shards.py --verify --out OUT     # check every shard against the manifest's SHA-256
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 
-from aesplat.data.shards import convert_dataset
+from aesplat.data.shards import convert_dataset, verify_shards
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--src", required=True, help="chunk folder with train/ and test/ (pixelSplat layout)")
+    p.add_argument("--src", help="chunk folder with train/ and test/ (pixelSplat layout)")
     p.add_argument("--out", required=True, help="shard folder to write")
     p.add_argument("--size", type=int, default=256, help="square output side in pixels (default 256)")
     p.add_argument(
@@ -60,7 +63,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--jpeg-quality", type=int, default=95)
     p.add_argument("--seed", type=int, default=0, help="seed of the training-sample draw (default 0)")
     p.add_argument("--dataset", default=None, help="name written into each sample's meta (default from SRC)")
+    p.add_argument("--verify", action="store_true", help="only check OUT's shards against its manifest")
     a = p.parse_args(argv)
+    if a.verify:
+        bad = verify_shards(a.out)
+        print("\n".join(f"checksum mismatch or missing: {b}" for b in bad) or f"all shards in {a.out} verified")
+        sys.exit(1 if bad else 0)
+    if a.src is None:
+        p.error("--src is required (unless --verify)")
     manifest = convert_dataset(
         a.src, a.out, size=a.size, eval_index=a.eval_index, workers=a.workers, min_gap=a.min_gap,
         max_gap=a.max_gap, samples_per_scene=a.samples_per_scene, train_targets=a.train_targets,

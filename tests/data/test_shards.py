@@ -218,6 +218,10 @@ def test_command_line_scripts(tmp_path):
     summary = json.loads(done.stdout)
     assert summary["train"]["samples"] == 4 and summary["test"]["samples"] == 1
     assert json.loads((out / "manifest.json").read_text())["config"]["size"] == 14
+    verify = [sys.executable, str(root / "to_shards.py"), "--verify", "--out", str(out)]
+    assert subprocess.run(verify, capture_output=True).returncode == 0
+    next((out / "test").glob("*.tar")).write_bytes(b"damaged")
+    assert subprocess.run(verify, capture_output=True).returncode == 1
 
 
 def test_missing_source_is_a_clear_error(tmp_path):
