@@ -6,8 +6,8 @@
 
 fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
-and the data, the parser holds three sections: ``checkpoint`` (ModelCheckpoint: last + best by val/psnr),
-``throughput`` and ``wandb``. Everything a run writes goes under ``trainer.default_root_dir`` (the run
+and the data, the parser holds four sections: ``checkpoint`` (ModelCheckpoint: best by val/psnr),
+``last_checkpoint`` (ModelCheckpoint: last.ckpt every N steps), ``throughput`` and ``wandb``. Everything a run writes goes under ``trainer.default_root_dir`` (the run
 directory): checkpoints/, wandb/, config.yaml, test/. ``--ckpt_path last`` resumes from the newest of
 checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts fresh when there is none).
 """
@@ -52,15 +52,20 @@ def _lightning_cli():
             return commands
 
         def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
+            # Best by val/psnr (written after validation) and last (every N steps: keep N a multiple of
+            # data.train_batches_per_epoch so every resume starts at an epoch boundary and continues exactly).
             parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+            parser.add_lightning_class_args(ModelCheckpoint, "last_checkpoint")
             parser.set_defaults(
                 {
                     "checkpoint.monitor": "val/psnr",
                     "checkpoint.mode": "max",
                     "checkpoint.save_top_k": 1,
-                    "checkpoint.save_last": True,
-                    "checkpoint.filename": "best-{step}",
+                    "checkpoint.filename": "best-step{step}",
                     "checkpoint.auto_insert_metric_name": False,
+                    "last_checkpoint.save_top_k": 0,
+                    "last_checkpoint.save_last": True,
+                    "last_checkpoint.every_n_train_steps": 1000,
                 }
             )
             parser.add_lightning_class_args(Throughput, "throughput")
@@ -70,8 +75,9 @@ def _lightning_cli():
             cfg = self.config[self.subcommand]
             run_dir = cfg.trainer.default_root_dir or DEFAULT_RUN_DIR
             cfg.trainer.default_root_dir = run_dir
-            if cfg.checkpoint.dirpath is None:
-                cfg.checkpoint.dirpath = str(Path(run_dir) / "checkpoints")
+            for key in ("checkpoint", "last_checkpoint"):
+                if cfg[key].dirpath is None:
+                    cfg[key].dirpath = str(Path(run_dir) / "checkpoints")
 
         def instantiate_trainer(self, **kwargs):
             cfg = self.config_init[self.subcommand]

@@ -69,9 +69,9 @@ def test_overlap_buckets():
 def _rows():
     rows = []
     for i, (overlap, value) in enumerate([(0.1, 10.0), (0.2, 12.0), (0.4, 20.0), (0.8, 30.0), (None, 40.0)]):
-        rows.append({"scene": f"s{i}", "dataset": "synthetic", "overlap": overlap, "bucket": overlap_bucket(overlap),
-                     "gap": 5, "psnr": value, "ssim": 0.5, "lpips": None, "rot_err_deg": 1.0,
-                     "trans_err_deg": 2.0})  # fmt: skip
+        rows.append({"scene": f"s{i}", "dataset": "synthetic", "overlap": overlap,
+                     "bucket": overlap_bucket(overlap), "gap": 5, "psnr": value, "ssim": 0.5,
+                     "lpips": None, "rot_err_deg": 1.0, "trans_err_deg": 2.0})  # fmt: skip
     return rows
 
 

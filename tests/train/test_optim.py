@@ -35,7 +35,8 @@ def test_groups_cover_every_trainable_parameter_once(tiny_model):
 
 def test_group_learning_rates_and_decay(tiny_model):
     cfg = OptimConfig(lr=1e-4, appearance_lr=3e-4, backbone_lr_scale=0.1)
-    opt, _ = build_optimizer(tiny_model.named_parameter_groups(), cfg, pretrained_backbone=False, total_steps=10)
+    groups = tiny_model.named_parameter_groups()
+    opt, _ = build_optimizer(groups, cfg, pretrained_backbone=False, total_steps=10)
     assert tiny_model.pretrained_backbone is False
     for g in opt.param_groups:
         want = {"appearance": 3e-4, "rest": 1e-4, "backbone": 1e-4}[g["name"]]

@@ -134,10 +134,14 @@ class AESplatModule(LightningModule):
         return out, rendered
 
     # ----------------------------------------------------------------------------------------- training
-    def on_train_batch_start(self, batch: BatchedExample, batch_idx: int) -> None:
+    def _sync_curriculum(self) -> None:
+        """Tell the data stream the global step (view-gap curriculum, seeds of the next epoch's stream)."""
         datamodule = getattr(self.trainer, "datamodule", None)
         if datamodule is not None and hasattr(datamodule, "set_global_step"):
-            datamodule.set_global_step(self.global_step)  # view-gap curriculum
+            datamodule.set_global_step(self.global_step)
+
+    def on_train_batch_start(self, batch: BatchedExample, batch_idx: int) -> None:
+        self._sync_curriculum()
 
     def training_step(self, batch: BatchedExample, batch_idx: int) -> Tensor:
         optimizer = self.optimizers()
@@ -158,6 +162,7 @@ class AESplatModule(LightningModule):
             rank_zero_warn(f"step {self.global_step}: non-finite loss or gradient, update skipped")
         optimizer.step()
         scheduler.step()
+        self._sync_curriculum()  # so a stream started between steps (new epoch, resume) sees the same step
 
         b = batch.batch_size
         self.log("train/loss", terms["total"], prog_bar=True, batch_size=b)
