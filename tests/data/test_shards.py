@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import json
 import os
@@ -218,10 +219,15 @@ def test_command_line_scripts(tmp_path):
     summary = json.loads(done.stdout)
     assert summary["train"]["samples"] == 4 and summary["test"]["samples"] == 1
     assert json.loads((out / "manifest.json").read_text())["config"]["size"] == 14
-    verify = [sys.executable, str(root / "to_shards.py"), "--verify", "--out", str(out)]
-    assert subprocess.run(verify, capture_output=True).returncode == 0
-    next((out / "test").glob("*.tar")).write_bytes(b"damaged")
-    assert subprocess.run(verify, capture_output=True).returncode == 1
+    spec = importlib.util.spec_from_file_location("to_shards", root / "to_shards.py")
+    to_shards = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(to_shards)
+    for damage, code in ((False, 0), (True, 1)):
+        if damage:
+            next((out / "test").glob("*.tar")).write_bytes(b"damaged")
+        with pytest.raises(SystemExit) as verdict:
+            to_shards.main(["--verify", "--out", str(out)])
+        assert verdict.value.code == code
 
 
 def test_missing_source_is_a_clear_error(tmp_path):
