@@ -230,6 +230,23 @@ def test_command_line_scripts(tmp_path):
         assert verdict.value.code == code
 
 
+def test_unreadable_chunk_is_counted(tmp_path, scene):
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    entry = chunk_entry(
+        "fine", images, s.extrinsics.double().numpy(), s.intrinsics.double().expand(8, 3, 3).numpy()
+    )
+    write_source(tmp_path / "src", [entry], [entry], {"fine": {"context": [0, 4], "target": [1, 2, 3]}})
+    (tmp_path / "src" / "train" / "000001.torch").write_bytes(b"half a download")
+    index = {"fine": "000000.torch", "lost": "000001.torch"}
+    (tmp_path / "src" / "train" / "index.json").write_text(json.dumps(index))
+    manifest = convert_dataset(
+        tmp_path / "src", tmp_path / "out", size=16, min_gap=2, max_gap=6, progress=False
+    )
+    assert manifest["splits"]["train"]["skips"] == {"corrupt_chunk": 1}
+    assert manifest["splits"]["train"]["samples"] == 8 and manifest["splits"]["test"]["samples"] == 1
+
+
 def test_missing_source_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="train/ or test/"):
         convert_dataset(tmp_path, tmp_path / "out", progress=False)

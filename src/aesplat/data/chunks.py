@@ -78,7 +78,7 @@ def write_chunk(scenes: list[dict[str, Any]], path: str | Path) -> None:
 def load_chunk(path: str | Path) -> list[dict[str, Any]]:
     """Load one chunk (a list of scene dicts). Raises ``ValueError`` naming the file if it is not one."""
     try:
-        data = torch.load(path, map_location="cpu", weights_only=False)
+        data = torch.load(path, map_location="cpu", weights_only=True)  # data files never run code
     except Exception as e:  # noqa: BLE001 - re-raised with the file name
         raise ValueError(f"cannot read chunk {path}: {e}") from e
     if not isinstance(data, list):
