@@ -111,11 +111,8 @@ def _fit(root, tmp_path, max_steps, ckpt_path=None, checkpoint_dir=None):
     L.seed_everything(0)
     # The schedule length is fixed (not the trainer's max_steps) so the interrupted run plans the same cosine.
     module, data = make_module(optim={"total_steps": 4}), make_data(root, train_batches_per_epoch=2)
-    callbacks = (
-        [ModelCheckpoint(dirpath=checkpoint_dir, save_last=True, save_top_k=0, every_n_train_steps=2)]
-        if checkpoint_dir
-        else []
-    )
+    last = ModelCheckpoint(dirpath=checkpoint_dir, save_last=True, save_top_k=0, every_n_train_steps=2)
+    callbacks = [last] if checkpoint_dir else []
     trainer = make_trainer(max_steps, tmp_path, callbacks=callbacks, enable_checkpointing=bool(checkpoint_dir))
     trainer.fit(module, data, ckpt_path=ckpt_path)
     return module, trainer

@@ -1,0 +1,99 @@
+"""The `aesplat` command: fit + test end to end on the CPU, config printing, every shipped config, dispatch."""
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import pytest
+import torch
+
+from aesplat import cli
+from aesplat.data import convert_dataset, generate_dataset
+
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = sorted(p.relative_to(REPO) for p in (REPO / "conf").rglob("*.yaml"))
+
+
+def aesplat_command() -> list[str]:
+    script = Path(sys.executable).parent / "aesplat"
+    return [str(script)] if script.exists() else [sys.executable, "-m", "aesplat.cli"]
+
+
+def run_aesplat(*args: str, timeout: int = 400) -> subprocess.CompletedProcess:
+    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.run([*aesplat_command(), *args], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=timeout)  # fmt: skip
+    assert proc.returncode == 0, (
+        f"aesplat {' '.join(args)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-6000:]}"
+    )
+    return proc
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli_data")
+    generate_dataset(root / "src", scenes=2, test_scenes=2, frames=12, height=48, width=64, seed=1)
+    convert_dataset(root / "src", root / "shards", size=28)
+    return root / "shards"
+
+
+def test_smoke_fit_then_test_writes_checkpoint_csv_and_json(shards, tmp_path):
+    run_dir = tmp_path / "run"
+    common = ["-c", "conf/smoke.yaml", "--data.root", str(shards), "--trainer.default_root_dir", str(run_dir)]
+    run_aesplat("fit", *common)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    assert last.exists() and list((run_dir / "checkpoints").glob("best-step*.ckpt"))
+    ckpt = torch.load(last, weights_only=True, map_location="cpu")
+    assert ckpt["global_step"] == 4
+    assert (run_dir / "config.yaml").exists() and (run_dir / "wandb_run_id").exists()
+
+    run_aesplat("test", *common, "--ckpt_path", str(last))
+    out = run_dir / "test"
+    with open(out / "per_scene.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 and all(float(r["psnr"]) > 5 for r in rows)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["num_scenes"] == 2
+    assert set(summary["buckets"]) >= {"small", "medium", "large"}
+    assert summary["metrics"]["lpips"] is None and "lpips" in summary["unavailable"]
+    assert len(list((out / "renders").glob("*.png"))) == 2
+
+
+def print_config(capsys, *args: str) -> str:
+    with pytest.raises(SystemExit) as info:
+        cli.main([*args, "--print_config"])
+    assert info.value.code in (0, None)
+    return capsys.readouterr().out
+
+
+def test_print_config_applies_overlays_and_dotted_overrides(capsys):
+    text = print_config(capsys, "fit", "-c", "conf/smoke.yaml", "--model.loss.lpips_weight", "0.2",
+                        "--trainer.max_steps", "7")  # fmt: skip
+    assert "lpips_weight: 0.2" in text and "max_steps: 7" in text
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=str)
+def test_every_shipped_config_parses(config, capsys):
+    first = "conf/re10k.yaml" if "ablation" in str(config) else None
+    args = ["-c", first] if first else []
+    command = "test" if "eval" in config.parts else "fit"
+    text = print_config(capsys, command, *args, "-c", str(config))
+    assert "model:" in text and "data:" in text
+
+
+def test_predict_and_bench_dispatch(monkeypatch):
+    calls = []
+    for name in ("predict", "bench"):
+        fake = types.ModuleType(f"aesplat.{name}")
+        fake.main = lambda argv, name=name: calls.append((name, list(argv)))
+        monkeypatch.setitem(sys.modules, f"aesplat.{name}", fake)
+    cli.main(["predict", "--ckpt", "a.ckpt", "--out", "o", "x.png", "y.png"])
+    cli.main(["bench", "--ckpt", "a.ckpt"])
+    assert calls == [
+        ("predict", ["--ckpt", "a.ckpt", "--out", "o", "x.png", "y.png"]),
+        ("bench", ["--ckpt", "a.ckpt"]),
+    ]
