@@ -23,16 +23,23 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--height", type=int, default=96, help="image height in pixels (default 96)")
     p.add_argument("--width", type=int, default=128, help="image width in pixels (default 128)")
     p.add_argument("--seed", type=int, default=0, help="everything is determined by this seed (default 0)")
+    p.add_argument(
+        "--supersample",
+        type=int,
+        default=1,
+        help="anti-alias with S x S rays per pixel (about S^2 times slower; default 1)",
+    )
     p.add_argument("--scenes-per-chunk", type=int, default=4, help="scenes per *.torch chunk (default 4)")
     p.add_argument("--specular", type=float, default=None, help="probability a scene declares `specular`")
     p.add_argument("--exposure", type=float, default=None, help="probability a scene declares `exposure`")
     a = p.parse_args(argv)
     probs = {k: v for k, v in (("specular", a.specular), ("exposure", a.exposure)) if v is not None}
     start = time.perf_counter()
-    info = generate_dataset(a.out, scenes=a.scenes, frames=a.frames, height=a.height, width=a.width,
-                            seed=a.seed,
-                            test_scenes=a.test_scenes, scenes_per_chunk=a.scenes_per_chunk, effect_probs=probs,
-                            progress=True)  # fmt: skip
+    info = generate_dataset(
+        a.out, scenes=a.scenes, frames=a.frames, height=a.height, width=a.width, seed=a.seed,
+        test_scenes=a.test_scenes, scenes_per_chunk=a.scenes_per_chunk, effect_probs=probs,
+        supersample=a.supersample, progress=True,
+    )  # fmt: skip
     n = info["train_scenes"] + info["test_scenes"]
     print(f"wrote {n} scenes ({info['train_scenes']} train, {info['test_scenes']} test) x {a.frames} frames "
           f"at {a.height}x{a.width} to {a.out} in {time.perf_counter() - start:.1f} s; "

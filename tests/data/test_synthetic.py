@@ -89,6 +89,15 @@ def test_depth_agrees_with_cameras():
     assert inside.all(-1)[consistent].float().mean() > 0.9  # the rest: checker edges between pixel centres
 
 
+def test_supersampling_averages_subpixel_rays():
+    scene = sample_scene(8, frames=3, height=8, width=12, effects=("textures",))
+    fine = render_scene(scene, 16, 24)
+    coarse = render_scene(scene, 8, 12, supersample=2)
+    pooled = fine.images.reshape(3, 8, 2, 12, 2, 3).mean(dim=(2, 4))
+    assert torch.allclose(coarse.images, pooled, atol=1e-6)
+    assert torch.equal(coarse.depth, render_scene(scene, 8, 12).depth)  # geometry from the pixel centre
+
+
 def test_scene_is_deterministic_from_seed():
     a = render_scene(sample_scene(9, frames=4, height=16, width=16), 16, 16)
     b = render_scene(sample_scene(9, frames=4, height=16, width=16), 16, 16)

@@ -197,22 +197,46 @@ def cast_rays(scene: Scene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tens
     return t, surface, normal
 
 
-def render_scene(scene: Scene, height: int, width: int, frames: list[int] | None = None) -> RenderedFrames:
-    """Ray-cast frames of a scene (all by default). Computes only the scene's declared effects."""
-    idx = list(range(scene.num_frames)) if frames is None else list(frames)
-    extr = scene.extrinsics[idx]
-    dirs = ray_directions(extr, scene.intrinsics, height, width)  # [F, HW, 3]
-    origins = extr[:, None, :3, 3].expand_as(dirs)
-    n = dirs.shape[0] * dirs.shape[1]
-    t, surface, normal = cast_rays(scene, origins.reshape(n, 3), dirs.reshape(n, 3))
-    points = origins.reshape(n, 3) + t[:, None] * dirs.reshape(n, 3)
+def _trace(scene: Scene, extrinsics: Tensor, height: int, width: int) -> tuple[Tensor, ...]:
+    """Cast one ray per pixel centre of every frame: t, surface, normal, point, origin (flattened)."""
+    dirs = ray_directions(extrinsics, scene.intrinsics, height, width)  # [F, HW, 3]
+    origins = extrinsics[:, None, :3, 3].expand_as(dirs).reshape(-1, 3)
+    dirs = dirs.reshape(-1, 3)
+    t, surface, normal = cast_rays(scene, origins, dirs)
+    return t, surface, normal, origins + t[:, None] * dirs, origins
+
+
+def _shade(scene: Scene, surface: Tensor, normal: Tensor, points: Tensor, origins: Tensor) -> Tensor:
+    """Radiance [N, 3] of hit points: the albedo, plus a highlight only if the scene declares ``specular``."""
     color = albedo(scene.materials, points, surface, textured="textures" in scene.effects)
     if "specular" in scene.effects:
-        color = color + specular(scene, points, normal, surface, origins.reshape(n, 3))
-    color = color.reshape(len(idx), height, width, 3)
+        color = color + specular(scene, points, normal, surface, origins)
+    return color
+
+
+def render_scene(
+    scene: Scene, height: int, width: int, frames: list[int] | None = None, supersample: int = 1
+) -> RenderedFrames:
+    """Ray-cast frames of a scene (all by default). Computes only the scene's declared effects.
+
+    supersample: s > 1 averages s x s rays per pixel for the colour (box-filter anti-aliasing); depth,
+    surface ids, points and normals always come from the pixel-centre ray.
+    """
+    if supersample < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    idx = list(range(scene.num_frames)) if frames is None else list(frames)
+    extr = scene.extrinsics[idx]
+    f, s = len(idx), supersample
+    t, surface, normal, points, origins = _trace(scene, extr, height, width)
+    if s == 1:
+        color = _shade(scene, surface, normal, points, origins).reshape(f, height, width, 3)
+    else:
+        _, sub_surface, sub_normal, sub_points, sub_origins = _trace(scene, extr, height * s, width * s)
+        fine = _shade(scene, sub_surface, sub_normal, sub_points, sub_origins)
+        color = fine.reshape(f, height, s, width, s, 3).mean(dim=(2, 4))
     if "exposure" in scene.effects:
         color = color * scene.gains[idx, None, None, None]
-    shape = (len(idx), height, width)
+    shape = (f, height, width)
     return RenderedFrames(
         images=color.clamp(0.0, 1.0),
         depth=t.reshape(shape),
@@ -394,7 +418,7 @@ def scene_to_chunk_entry(scene: Scene, rendered: RenderedFrames, jpeg_quality: i
 
 def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int, width: int, seed: int,
                   scenes_per_chunk: int, effect_probs: dict[str, float] | None, jpeg_quality: int,
-                  eval_index: dict, bar) -> None:  # fmt: skip
+                  supersample: int, eval_index: dict, bar) -> None:  # fmt: skip
     lo, hi = recommended_gaps(frames)
     eval_rng = np.random.default_rng(seed + 7_919)
     for split, count, offset in (("train", scenes, 0), ("test", n_test, 1_000_000)):
@@ -407,7 +431,7 @@ def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int,
                 scene_seed = seed * 10_000_019 + offset + i
                 scene = sample_scene(scene_seed, frames, height, width, key=f"{split}{seed:03d}_{i:05d}",
                                      effect_probs=effect_probs)  # fmt: skip
-                rendered = render_scene(scene, height, width)
+                rendered = render_scene(scene, height, width, supersample=supersample)
                 chunk.append(scene_to_chunk_entry(scene, rendered, jpeg_quality))
                 if split == "test":
                     gap = int(eval_rng.integers(max(lo, 4), max(hi, 4) + 1))  # room for three targets
@@ -434,6 +458,7 @@ def generate_dataset(
     scenes_per_chunk: int = 4,
     effect_probs: dict[str, float] | None = None,
     jpeg_quality: int = 95,
+    supersample: int = 1,
     progress: bool = False,
 ) -> dict:
     """Write a synthetic data set in the chunk format: ``out/{train,test}/*.torch`` + ``index.json``,
@@ -441,6 +466,7 @@ def generate_dataset(
     ``out/dataset.json`` (sizes and the recommended context-gap range / near / far).
 
     ``scenes`` is the number of training scenes; ``test_scenes`` defaults to half of it (at least 1).
+    ``supersample`` s > 1 anti-aliases the images with s x s rays per pixel (about s^2 times slower).
     Returns the ``dataset.json`` contents.
     """
     if min(scenes, frames, height, width, scenes_per_chunk) < 1:
@@ -450,7 +476,6 @@ def generate_dataset(
     out = Path(out)
     n_test = max(1, (scenes + 1) // 2) if test_scenes is None else test_scenes
     eval_index: dict[str, dict | None] = {}
-    lo, hi = recommended_gaps(frames)
     from tqdm import tqdm
 
     bar = tqdm(total=scenes + n_test, desc="synthetic scenes", disable=not progress)
@@ -458,17 +483,19 @@ def generate_dataset(
     torch.set_num_threads(1)  # small element-wise kernels: extra threads only spin (10x slower on a busy CPU)
     try:
         _write_splits(out, scenes, n_test, frames, height, width, seed, scenes_per_chunk, effect_probs,
-                      jpeg_quality, eval_index, bar)  # fmt: skip
+                      jpeg_quality, supersample, eval_index, bar)  # fmt: skip
     finally:
         torch.set_num_threads(threads)
         bar.close()
     (out / "evaluation_index.json").write_text(json.dumps(eval_index, indent=1, sort_keys=True))
+    lo, hi = recommended_gaps(frames)
     info = {
         "dataset": "synthetic",
         "seed": seed,
         "frames": frames,
         "height": height,
         "width": width,
+        "supersample": supersample,
         "train_scenes": scenes,
         "test_scenes": n_test,
         "gap_range": [lo, hi],
