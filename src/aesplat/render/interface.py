@@ -36,7 +36,7 @@ class RenderSettings:
     compile       torch backend: run the per-chunk maths through ``torch.compile`` (slow first call)
     """
 
-    tile_size: int = 16
+    tile_size: int = 8
     chunk: int = 32
     max_elements: int = 1 << 22
     near: float = 0.01

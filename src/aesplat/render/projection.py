@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from aesplat.geometry import covariance_from_scale_rot, eval_sh, invert_pose, num_sh_coeffs
+from aesplat.geometry import eval_sh, invert_pose, num_sh_coeffs, quat_to_matrix
 from aesplat.types import Gaussians
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
@@ -66,7 +66,7 @@ class CullCounts:
 
 def _ewa(
     means: Tensor,  # [B * N, 3]
-    covariance: Callable[[Tensor], Tensor],  # flat Gaussian indices [M] -> world covariances [M, 3, 3]
+    shape: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]],  # (gid [M], J R [M, 2, 3]) -> 2D cov
     cameras: tuple[Tensor, Tensor, Tensor],  # rotations [C, 3, 3], translations [C, 3], intrinsics [C, 3, 3]
     cam: Tensor,  # [M] camera of each pair
     gid: Tensor,  # [M] flat Gaussian index of each pair
@@ -76,13 +76,12 @@ def _ewa(
 ) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor], Tensor]:
     """Pixel means [M, 2], low-passed 2D covariance entries (a, b, c) [M] each, and camera z [M].
 
-    Callers guarantee z > near > 0 for every pair.
+    Callers guarantee z > near > 0 for every pair. Small per-pair matrix products are written as broadcast
+    multiply-and-sum: batched 3x3 matmuls are slow on the CPU.
     """
     rot_all, trans_all, k_all = cameras
     r = rot_all[cam]  # [M, 3, 3]
-    mean_c = (r @ means[gid][:, :, None])[..., 0] + trans_all[cam]  # [M, 3]
-    cov_w = covariance(gid)
-    cov_c = r @ cov_w @ r.transpose(-1, -2)  # [M, 3, 3]
+    mean_c = (r * means[gid][:, None, :]).sum(-1) + trans_all[cam]  # [M, 3]
     k = k_all[cam]
     fx, fy = k[:, 0, 0] * width, k[:, 1, 1] * height
     cx, cy = k[:, 0, 2] * width, k[:, 1, 2] * height
@@ -93,12 +92,12 @@ def _ewa(
     lo_y, hi_y = -(cy + 0.15 * height) / fy, (1.15 * height - cy) / fy
     tx = z * torch.minimum(hi_x, torch.maximum(lo_x, x * rz))
     ty = z * torch.minimum(hi_y, torch.maximum(lo_y, y * rz))
-    zero = torch.zeros_like(z)
-    jac = torch.stack([fx * rz, zero, -fx * tx * rz * rz, zero, fy * rz, -fy * ty * rz * rz], dim=-1)
-    jac = jac.reshape(-1, 2, 3)  # [M, 2, 3]
-    cov2d = jac @ cov_c @ jac.transpose(-1, -2)  # [M, 2, 2]
+    # J R, with J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]]: rows [M, 3] each.
+    jr0 = (fx * rz)[:, None] * r[:, 0] - (fx * tx * rz * rz)[:, None] * r[:, 2]
+    jr1 = (fy * rz)[:, None] * r[:, 1] - (fy * ty * rz * rz)[:, None] * r[:, 2]
+    ca, cb, cc = shape(gid, torch.stack([jr0, jr1], dim=1))
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
-    return means2d, (cov2d[:, 0, 0] + eps2d, cov2d[:, 0, 1], cov2d[:, 1, 1] + eps2d), z
+    return means2d, (ca + eps2d, cb, cc + eps2d), z
 
 
 def _radii(ca: Tensor, cc: Tensor, opac: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
@@ -152,17 +151,20 @@ def project_gaussians(
     if covariances is not None:
         flat_cov = covariances.reshape(b * n, 3, 3)
 
-        def covariance(idx: Tensor) -> Tensor:
-            return flat_cov[idx]
+        def shape(idx: Tensor, jr: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+            x = (jr[:, :, :, None] * flat_cov[idx][:, None]).sum(2)  # J R Sigma [M, 2, 3]
+            return (x[:, 0] * jr[:, 0]).sum(-1), (x[:, 0] * jr[:, 1]).sum(-1), (x[:, 1] * jr[:, 1]).sum(-1)
     else:
         scales, quats = gaussians.scales.reshape(b * n, 3), gaussians.quats.reshape(b * n, 4)
 
-        def covariance(idx: Tensor) -> Tensor:
-            return covariance_from_scale_rot(scales[idx], quats[idx])
+        def shape(idx: Tensor, jr: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+            rs = quat_to_matrix(quats[idx]) * scales[idx][:, None, :]  # R_q S [M, 3, 3]
+            t = (jr[:, :, :, None] * rs[:, None]).sum(2)  # J R R_q S [M, 2, 3]; 2D cov = t t^T
+            return (t[:, 0] * t[:, 0]).sum(-1), (t[:, 0] * t[:, 1]).sum(-1), (t[:, 1] * t[:, 1]).sum(-1)
 
     # 3. footprint cull, decided without autograd so no culled row can leak a NaN into the backward.
     with torch.no_grad():
-        means2d, conic_cov, depth = _ewa(flat_means, covariance, cameras, cam, gid, height, width, eps2d)
+        means2d, conic_cov, depth = _ewa(flat_means, shape, cameras, cam, gid, height, width, eps2d)
         ca, cb, cc = conic_cov
         det = ca * cc - cb * cb
         opac = gaussians.opacities.reshape(b * n)[gid]
@@ -176,7 +178,7 @@ def project_gaussians(
     footprint = int(cam.numel() - sel.numel())
 
     cam_v, gid_v = cam[sel], gid[sel]
-    means2d, (ca, cb, cc), depth = _ewa(flat_means, covariance, cameras, cam_v, gid_v, height, width, eps2d)
+    means2d, (ca, cb, cc), depth = _ewa(flat_means, shape, cameras, cam_v, gid_v, height, width, eps2d)
     det = ca * cc - cb * cb  # > 0 for every survivor
     conics = torch.stack([cc / det, -cb / det, ca / det], dim=-1)
 
