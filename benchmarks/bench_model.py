@@ -1,6 +1,6 @@
 """Model benchmark: forward and forward+backward time and peak memory, split by module, on the CPU.
 
-    python benchmarks/bench_model.py [--sizes tiny base] [--resolution 224] [--reps 3] [--threads 2]
+    python benchmarks/bench_model.py [--sizes tiny base] [--resolution 224] [--reps 3] [--warmup 1]
 
 Workload: batch 1, 2 context + 1 target views, square images; the target is rendered with the predicted
 target camera (torch backend). Every module is timed on its own with the inputs it received in a full
@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import statistics
+import sys
 import time
 import weakref
 from collections.abc import Callable
@@ -89,9 +90,10 @@ def _backward(out) -> None:
     loss.backward()
 
 
-def _measure(fn: Callable[[], None], reps: int) -> tuple[float, float]:
-    """(median milliseconds over ``reps`` after one warm-up, peak tensor MiB of one extra call)."""
-    fn()
+def _measure(fn: Callable[[], None], reps: int, warmup: int) -> tuple[float, float]:
+    """(median milliseconds over ``reps`` after ``warmup`` calls, peak tensor MiB of one extra call)."""
+    for _ in range(warmup):
+        fn()
     times = []
     for _ in range(reps):
         start = time.perf_counter()
@@ -102,7 +104,9 @@ def _measure(fn: Callable[[], None], reps: int) -> tuple[float, float]:
     return statistics.median(times), mem.peak / 2**20
 
 
-def bench_size(size: str, resolution: int, reps: int) -> list[tuple[str, float, float, float, float]]:
+def bench_size(
+    size: str, resolution: int, reps: int, warmup: int
+) -> list[tuple[str, float, float, float, float]]:
     torch.manual_seed(0)
     model = build_model(size, appearance="full", sh_degree=4)
     res = resolution
@@ -159,9 +163,10 @@ def bench_size(size: str, resolution: int, reps: int) -> list[tuple[str, float, 
     jobs = [(name, lambda g, n=name: run_module(n, g)) for name in MODULES] + [("render", run_render)]
     jobs.append(("**total** (model + render + loss)", run_all))
     for label, make in jobs:
-        fwd_ms, fwd_mib = _measure(make(False), reps)
+        print(f"  measuring {size} {label} ...", file=sys.stderr, flush=True)
+        fwd_ms, fwd_mib = _measure(make(False), reps, warmup)
         model.zero_grad(set_to_none=True)
-        bwd_ms, bwd_mib = _measure(make(True), reps)
+        bwd_ms, bwd_mib = _measure(make(True), reps, warmup)
         model.zero_grad(set_to_none=True)
         rows.append((label, fwd_ms, fwd_mib, bwd_ms, bwd_mib))
     return rows
@@ -172,6 +177,7 @@ def main() -> None:
     parser.add_argument("--sizes", nargs="+", default=["tiny", "base"])
     parser.add_argument("--resolution", type=int, default=224)
     parser.add_argument("--reps", type=int, default=3)
+    parser.add_argument("--warmup", type=int, default=1, help="untimed calls before the timed ones")
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -182,7 +188,9 @@ def main() -> None:
         print(f"\n### `{size}` ({params / 1e6:.1f} M parameters)\n")
         print("| module | forward ms | forward peak MiB | forward+backward ms | forward+backward peak MiB |")
         print("| --- | ---: | ---: | ---: | ---: |")
-        for label, fwd_ms, fwd_mib, bwd_ms, bwd_mib in bench_size(size, args.resolution, args.reps):
+        for label, fwd_ms, fwd_mib, bwd_ms, bwd_mib in bench_size(
+            size, args.resolution, args.reps, args.warmup
+        ):
             print(f"| {label} | {fwd_ms:.0f} | {fwd_mib:.0f} | {bwd_ms:.0f} | {bwd_mib:.0f} |", flush=True)
 
 
