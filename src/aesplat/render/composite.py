@@ -198,10 +198,10 @@ def _forward_group(fwd, packed, bins, tiles, height, width, chunk, mono, feat, t
     t_loc = packed.new_ones(tiles.numel(), mono.shape[1])
     live = (~off).to(packed.dtype)  # 0 once a pixel has stopped (and for pixels off the image)
     f_loc = packed.new_zeros(tiles.numel(), 4, mono.shape[1])
-    act = torch.arange(tiles.numel(), device=packed.device)
+    act: slice | Tensor = slice(0, tiles.numel())
     steps = []
     k0 = 0
-    while act.numel() > 0:
+    while _count(act) > 0:
         p, _, valid = _gather_chunk(packed, bins, starts[act], counts[act], k0, chunk)
         live_act = live[act]
         t0 = t_loc[act] * live_act
@@ -212,9 +212,23 @@ def _forward_group(fwd, packed, bins, tiles, height, width, chunk, mono, feat, t
         live_act = torch.where(stopped, torch.zeros_like(live_act), live_act)
         live[act] = live_act
         k0 += chunk
-        act = act[(counts[act] > k0) & (live_act > 0).any(-1)]
+        act = _next_active(act, (counts[act] > k0) & (live_act > 0).any(-1), tiles.numel())
     feat[tiles], trans[tiles] = f_loc, t_loc
     return steps
+
+
+def _count(act: slice | Tensor) -> int:
+    return act.stop if isinstance(act, slice) else act.numel()
+
+
+def _next_active(act: slice | Tensor, alive: Tensor, n: int) -> slice | Tensor:
+    """The tiles still active: a slice while they form a prefix (tiles are sorted by list length, so they do
+    until some tile saturates), which makes every per-tile read and write a view instead of a copy."""
+    n_alive = int(alive.sum())
+    if isinstance(act, slice) and bool(alive[:n_alive].all()):
+        return slice(0, n_alive)
+    idx = torch.arange(n, device=alive.device)[act] if isinstance(act, slice) else act
+    return idx[alive]
 
 
 def _backward_group(bwd, packed, bins, tiles, height, width, chunk, mono, steps, g_feat, g_trans, trans, grad):
