@@ -78,11 +78,19 @@ def test_print_config_applies_overlays_and_dotted_overrides(capsys):
 
 @pytest.mark.parametrize("config", CONFIGS, ids=str)
 def test_every_shipped_config_parses(config, capsys):
-    first = "conf/re10k.yaml" if "ablation" in str(config) else None
-    args = ["-c", first] if first else []
+    """Full configs alone; overlays on their base (ablations on RE10K, X_to_Y evaluations on X)."""
+    base = []
+    if "ablation" in config.parts:
+        base = ["-c", "conf/re10k.yaml"]
+    elif "eval" in config.parts:
+        base = ["-c", f"conf/{config.stem.split('_to_')[0]}.yaml"]
     command = "test" if "eval" in config.parts else "fit"
-    text = print_config(capsys, command, *args, "-c", str(config))
+    text = print_config(capsys, command, *base, "-c", str(config))
     assert "model:" in text and "data:" in text
+    if "ablation" in config.parts:
+        assert f"appearance: {config.stem}" in text and "max_steps: 50000" in text
+    if "eval" in config.parts:
+        assert f"shards/{config.stem.split('_to_')[1]}" in text
 
 
 def test_predict_and_bench_dispatch(monkeypatch):
