@@ -155,7 +155,9 @@ class AESplatModule(LightningModule):
         # Always backward, even on a NaN loss: under DDP every rank must join the gradient all-reduce.
         self.manual_backward(terms["total"])
         grad_norm, finite = clip_and_check(self.model.parameters(), self.optim_cfg.grad_clip, terms["total"])
-        non_finite = self.trainer.strategy.reduce(torch.tensor(float(not finite), device=self.device), "sum")
+        non_finite = self.trainer.strategy.reduce(
+            torch.tensor(float(not finite), device=self.device), reduce_op="sum"
+        )
         if non_finite.item() > 0:
             discard_gradients(optimizer.optimizer)
             self.skipped_steps += 1
