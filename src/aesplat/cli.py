@@ -109,7 +109,7 @@ def run_lightning(argv: Sequence[str]) -> None:
     cli_class(
         module_class,
         data_class,
-        args=list(argv),
+        args=None if list(argv) == sys.argv[1:] else list(argv),  # None: LightningCLI reads sys.argv itself
         parser_kwargs={"parser_mode": "omegaconf"},
         save_config_kwargs={"overwrite": True},
         auto_configure_optimizers=False,
@@ -119,6 +119,11 @@ def run_lightning(argv: Sequence[str]) -> None:
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the `aesplat` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv in ([], ["-h"], ["--help"]):
+        print("aesplat fit|validate|test -c CONFIG.yaml [--key value ...]  train / evaluate (LightningCLI)")
+        print("aesplat predict --help                    images -> Gaussians, cameras, renders")
+        print("aesplat bench --help                      accuracy-versus-time report\n")
+        argv = ["--help"]
     if argv and argv[0] == "predict":
         from aesplat.predict import main as predict_main
 

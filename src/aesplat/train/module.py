@@ -181,6 +181,13 @@ class AESplatModule(LightningModule):
             self._log_images("train/images", batch, out, rendered)
         return terms["total"].detach()
 
+    def on_train_epoch_end(self) -> None:
+        """Log the data stream's skip counters (corrupt samples / shards, curriculum rejections) per epoch."""
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if datamodule is not None and hasattr(datamodule, "data_errors"):
+            for key, count in datamodule.data_errors().items():
+                self.log(f"data/{key}", float(count), rank_zero_only=True)
+
     # ----------------------------------------------------------------------------------------- evaluation
     def _evaluate(self, batch: BatchedExample) -> tuple[dict[str, Tensor], RenderOutput, object]:
         """Per-scene metrics: image metrics averaged over each scene's target views, pose errors over views."""
