@@ -7,7 +7,7 @@ from aesplat.geometry import DEFAULT_FOV, focal_to_fov, num_sh_coeffs
 from aesplat.model import APPEARANCE_MODES, ModelOutput, build_model, i2dc
 from aesplat.types import Gaussians
 
-H = W = 56
+H = W = 28
 
 
 @pytest.fixture(scope="module")
@@ -184,10 +184,10 @@ def test_build_model_options_reach_the_modules():
 @pytest.mark.parametrize(
     ("ctx_shape", "tgt_shape", "match"),
     [
-        ((1, 2, 3, 50, 56), None, "multiples of 14"),
-        ((1, 1, 3, 56, 56), None, "at least 2 context views"),
-        ((1, 2, 56, 56), None, r"\[B, Vc, 3, H, W\]"),
-        ((1, 2, 3, 56, 56), (1, 1, 3, 28, 28), "target_images"),
+        ((1, 2, 3, 30, 28), None, "multiples of 14"),
+        ((1, 1, 3, 28, 28), None, "at least 2 context views"),
+        ((1, 2, 28, 28), None, r"\[B, Vc, 3, H, W\]"),
+        ((1, 2, 3, 28, 28), (1, 1, 3, 42, 42), "target_images"),
     ],
 )
 def test_forward_rejects_bad_inputs(model, ctx_shape, tgt_shape, match):

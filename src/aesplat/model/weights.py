@@ -27,9 +27,9 @@ class WeightsReport:
     path: str
     format: str  # "timm", "dinov2" or "vggt"
     loaded: list[str] = field(default_factory=list)
-    missing: list[str] = field(default_factory=list)  # encoder parameters the checkpoint lacks
-    unexpected: list[str] = field(default_factory=list)  # checkpoint keys the encoder does not have
-    ignored: list[str] = field(default_factory=list)  # known keys with no use here (DINOv2's mask_token)
+    missing: list[str] = field(default_factory=list)  # model parameters the checkpoint lacks
+    unexpected: list[str] = field(default_factory=list)  # checkpoint keys the model does not have
+    ignored: list[str] = field(default_factory=list)  # known keys with no use here (mask_token, VGGT's heads)
 
 
 # Keys of the original DINOv2 release that the encoder deliberately has no use for.
@@ -97,8 +97,9 @@ def _read(path: str | Path, what: str) -> dict[str, Tensor]:
     return _unwrap(torch.load(path, map_location="cpu", weights_only=True))
 
 
-def _load_matching(module: nn.Module, state: dict[str, Tensor], prefix: str, report: WeightsReport,
-                   pos_grid: int | None = None) -> None:  # fmt: skip
+def _load_matching(
+    module: nn.Module, state: dict[str, Tensor], prefix: str, report: WeightsReport, pos_grid: int | None = None
+) -> None:
     """Copy the tensors of ``state`` into ``module`` by name; record loaded / missing / unexpected keys
     (with ``prefix``, the module's name in the model). A shape mismatch is an error."""
     own = module.state_dict()
