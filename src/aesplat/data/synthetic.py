@@ -256,9 +256,9 @@ def look_pose(position: Tensor, yaw: Tensor, pitch: Tensor) -> Tensor:
     )
     down = torch.tensor([0.0, 1.0, 0.0], dtype=position.dtype).expand_as(forward)
     right = torch.nn.functional.normalize(torch.linalg.cross(down, forward, dim=-1), dim=-1)
-    up_cam = torch.linalg.cross(forward, right, dim=-1)
+    down_cam = torch.linalg.cross(forward, right, dim=-1)  # camera y (down)
     pose = torch.eye(4, dtype=position.dtype).repeat(position.shape[0], 1, 1)
-    pose[:, :3, :3] = torch.stack([right, up_cam, forward], dim=-1)
+    pose[:, :3, :3] = torch.stack([right, down_cam, forward], dim=-1)
     pose[:, :3, 3] = position
     return pose
 
@@ -277,9 +277,12 @@ def _camera_path(rng: np.random.Generator, frames: int, half: np.ndarray) -> tup
         length = rng.uniform(1.5, 3.0)
         step = length / max(frames - 1, 1) * (1.0 + 0.2 * np.sin(2 * math.pi * s * rng.uniform(0.5, 2.0)))
         heading = np.stack([np.sin(yaw), np.zeros_like(yaw), np.cos(yaw)], axis=-1)
-        pos = start + np.concatenate([[0.0], np.cumsum(step[1:])])[:, None] * heading
+        walked = np.cumsum(step[1:, None] * heading[1:], axis=0)  # integrate the heading along the walk
+        pos = start + np.concatenate([np.zeros((1, 3)), walked])
         pos[:, 1] = start[1] + 0.03 * np.sin(2 * math.pi * 2.0 * s)
-        if np.all(np.abs(pos[:, [0, 2]]) < half[[0, 2]] - 0.8):
+        # Stay inside, and keep at least 3.5 units of room ahead so no frame is just a wall filling the view.
+        ahead = np.where(heading > 0, half - pos, half + pos)[:, [0, 2]] / np.abs(heading[:, [0, 2]]).clip(1e-6)
+        if np.all(np.abs(pos[:, [0, 2]]) < half[[0, 2]] - 0.8) and ahead.min() > 3.5:
             return pos, np.stack([yaw, pitch], axis=-1)
     raise RuntimeError("could not fit a camera path into the room")
 
@@ -328,7 +331,7 @@ def sample_scene(
     pos, angles = _camera_path(rng, frames, half)
 
     boxes, spheres = [], []
-    want_boxes, want_spheres = int(rng.integers(2, 5)), int(rng.integers(1, 4))
+    want_boxes, want_spheres = int(rng.integers(3, 7)), int(rng.integers(1, 4))
     for _ in range(200):  # furniture placed away from the path (tries until the room is furnished)
         if len(boxes) >= want_boxes and len(spheres) >= want_spheres:
             break
