@@ -67,6 +67,18 @@ def test_eval_two_ranks_two_workers_yield_each_sample_once(synthetic_shards, tmp
     assert Counter(seen) == Counter(expected) and len(seen) == len(set(seen))
 
 
+def test_reads_shards_written_by_webdataset(synthetic_shards, tmp_path):
+    import webdataset as wds
+
+    (tmp_path / "test").mkdir()
+    source = list(read_tar(sorted((synthetic_shards / "test").glob("*.tar"))[0]))
+    with wds.TarWriter(str(tmp_path / "test" / "other-000000.tar")) as sink:
+        for key, raw in source:
+            sink.write({"__key__": key, **raw})
+    batches = list(module(tmp_path).test_dataloader())
+    assert [k for b in batches for k in b.scene] == [json.loads(raw["meta.json"])["scene"] for _, raw in source]
+
+
 def test_eval_is_deterministic(synthetic_shards):
     runs = []
     for _ in range(2):
