@@ -14,6 +14,24 @@ from aesplat.model import (
 DIM, DEPTH = 96, 4  # the tiny preset's encoder
 
 
+def block_tensors(p: str, dim: int, r, head_dim: int | None = None) -> dict:
+    """One block's tensors under prefix ``p`` (timm, DINOv2 and VGGT names); QK-norm when head_dim is given."""
+    sd = {
+        p + "norm1.weight": r(dim), p + "norm1.bias": r(dim),
+        p + "attn.qkv.weight": r(3 * dim, dim), p + "attn.qkv.bias": r(3 * dim),
+        p + "attn.proj.weight": r(dim, dim), p + "attn.proj.bias": r(dim),
+        p + "ls1.gamma": r(dim),
+        p + "norm2.weight": r(dim), p + "norm2.bias": r(dim),
+        p + "mlp.fc1.weight": r(4 * dim, dim), p + "mlp.fc1.bias": r(4 * dim),
+        p + "mlp.fc2.weight": r(dim, 4 * dim), p + "mlp.fc2.bias": r(dim),
+        p + "ls2.gamma": r(dim),
+    }  # fmt: skip
+    if head_dim is not None:
+        for name in ("q_norm", "k_norm"):
+            sd |= {p + f"attn.{name}.weight": r(head_dim), p + f"attn.{name}.bias": r(head_dim)}
+    return sd
+
+
 def timm_state_dict(dim: int, depth: int, grid: int, registers: int = 0, cls_pos: bool = True) -> dict:
     """A ViT/14 state dict with timm's ``vit_*_patch14_dinov2`` key names, built from the names alone."""
     g = torch.Generator().manual_seed(1)
@@ -32,17 +50,7 @@ def timm_state_dict(dim: int, depth: int, grid: int, registers: int = 0, cls_pos
     if registers:
         sd["reg_token"] = r(1, registers, dim)
     for i in range(depth):
-        p = f"blocks.{i}."
-        sd |= {
-            p + "norm1.weight": r(dim), p + "norm1.bias": r(dim),
-            p + "attn.qkv.weight": r(3 * dim, dim), p + "attn.qkv.bias": r(3 * dim),
-            p + "attn.proj.weight": r(dim, dim), p + "attn.proj.bias": r(dim),
-            p + "ls1.gamma": r(dim),
-            p + "norm2.weight": r(dim), p + "norm2.bias": r(dim),
-            p + "mlp.fc1.weight": r(4 * dim, dim), p + "mlp.fc1.bias": r(4 * dim),
-            p + "mlp.fc2.weight": r(dim, 4 * dim), p + "mlp.fc2.bias": r(dim),
-            p + "ls2.gamma": r(dim),
-        }  # fmt: skip
+        sd |= block_tensors(f"blocks.{i}.", dim, r)
     return sd
 
 
@@ -133,22 +141,9 @@ def vggt_state_dict(dim: int, depth: int, registers: int) -> dict:
     sd = {"aggregator.patch_embed." + k: v for k, v in to_dinov2(timm_state_dict(dim, depth, 37, 4)).items()}
     sd["aggregator.camera_token"] = r(1, 2, 1, dim)
     sd["aggregator.register_token"] = r(1, 2, registers, dim)
-    head_dim = dim // 3
     for kind in ("frame_blocks", "global_blocks"):
         for i in range(depth):
-            p = f"aggregator.{kind}.{i}."
-            sd |= {
-                p + "norm1.weight": r(dim), p + "norm1.bias": r(dim),
-                p + "attn.qkv.weight": r(3 * dim, dim), p + "attn.qkv.bias": r(3 * dim),
-                p + "attn.q_norm.weight": r(head_dim), p + "attn.q_norm.bias": r(head_dim),
-                p + "attn.k_norm.weight": r(head_dim), p + "attn.k_norm.bias": r(head_dim),
-                p + "attn.proj.weight": r(dim, dim), p + "attn.proj.bias": r(dim),
-                p + "ls1.gamma": r(dim),
-                p + "norm2.weight": r(dim), p + "norm2.bias": r(dim),
-                p + "mlp.fc1.weight": r(4 * dim, dim), p + "mlp.fc1.bias": r(4 * dim),
-                p + "mlp.fc2.weight": r(dim, 4 * dim), p + "mlp.fc2.bias": r(dim),
-                p + "ls2.gamma": r(dim),
-            }  # fmt: skip
+            sd |= block_tensors(f"aggregator.{kind}.{i}.", dim, r, head_dim=dim // 3)
     sd["camera_head.trunk.0.weight"] = r(4, 4)  # VGGT's own heads are not ours
     return sd
 
