@@ -18,7 +18,7 @@ import statistics
 import sys
 import time
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
@@ -106,7 +106,7 @@ def _measure(fn: Callable[[], None], reps: int, warmup: int) -> tuple[float, flo
 
 def bench_size(
     size: str, resolution: int, reps: int, warmup: int
-) -> list[tuple[str, float, float, float, float]]:
+) -> Iterator[tuple[str, float, float, float, float]]:
     torch.manual_seed(0)
     model = build_model(size, appearance="full", sh_degree=4)
     res = resolution
@@ -159,7 +159,6 @@ def bench_size(
 
         return fn
 
-    rows = []
     jobs = [(name, lambda g, n=name: run_module(n, g)) for name in MODULES] + [("render", run_render)]
     jobs.append(("**total** (model + render + loss)", run_all))
     for label, make in jobs:
@@ -168,8 +167,7 @@ def bench_size(
         model.zero_grad(set_to_none=True)
         bwd_ms, bwd_mib = _measure(make(True), reps, warmup)
         model.zero_grad(set_to_none=True)
-        rows.append((label, fwd_ms, fwd_mib, bwd_ms, bwd_mib))
-    return rows
+        yield label, fwd_ms, fwd_mib, bwd_ms, bwd_mib  # rows stream out as they are measured
 
 
 def main() -> None:
