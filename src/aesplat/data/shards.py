@@ -217,6 +217,24 @@ class _Job:
     eval_index: dict[str, Any] | None  # test split only; None = sample like training but deterministically
 
 
+def _scene_samples(scene: dict[str, Any], key: str, job: _Job, skips: Counter[str]) -> list[tuple]:
+    """(sample key, context ids, target ids, overlap) of one valid scene: the evaluation index's entry, or
+    the training draw (seeded by the scene key, so a resumed or re-run conversion draws the same samples)."""
+    if job.eval_index is not None:
+        entry = job.eval_index[key]
+        return [(safe_key(key), list(entry["context"]), list(entry["target"]), entry.get("overlap"))]
+    seed = int.from_bytes(hashlib.sha256(f"{job.cfg.seed}/{key}".encode()).digest()[:8], "little")
+    views = training_views(len(scene["images"]), job.cfg, np.random.default_rng(seed))
+    centres = row_to_cameras(scene["cameras"])[0][:, :3, 3]
+    out = []
+    for i, (ctx, tgt) in enumerate(views):
+        if np.linalg.norm(centres[ctx[1]] - centres[ctx[0]]) < job.cfg.min_baseline:
+            skips["degenerate_pair"] += 1
+            continue
+        out.append((f"{safe_key(key)}_{i:03d}", ctx, tgt, None))
+    return out
+
+
 def convert_chunk(job: _Job) -> dict[str, Any]:
     """Convert one chunk into one shard; returns its record (also written as the shard's sidecar JSON)."""
     shard = Path(job.shard)
@@ -244,27 +262,13 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
             skips[reason] += 1
             continue
         try:
-            if job.eval_index is not None:
-                entry = job.eval_index[key]
-                views = [(list(entry["context"]), list(entry["target"]))]
-                overlaps = [entry.get("overlap")]
-            else:
-                # Seeded per scene key: a resumed or re-run conversion draws the same samples.
-                seed = int.from_bytes(hashlib.sha256(f"{job.cfg.seed}/{key}".encode()).digest()[:8], "little")
-                views = training_views(len(scene["images"]), job.cfg, np.random.default_rng(seed))
-                c2w, _ = row_to_cameras(scene["cameras"])
-                kept = [v for v in views if np.linalg.norm(c2w[v[0][1], :3, 3] - c2w[v[0][0], :3, 3])
-                        >= job.cfg.min_baseline]  # fmt: skip
-                skips["degenerate_pair"] += len(views) - len(kept)
-                views, overlaps = kept, [None] * len(kept)
-            made = []
-            for i, ((ctx, tgt), ov) in enumerate(zip(views, overlaps)):
-                name = safe_key(key) if job.eval_index is not None else f"{safe_key(key)}_{i:03d}"
-                made.append((name, make_sample(scene, ctx, tgt, ov, job.cfg)))
-            samples.extend(made)
-            used_keys.append(key)
+            made = [(name, make_sample(scene, ctx, tgt, ov, job.cfg))
+                    for name, ctx, tgt, ov in _scene_samples(scene, key, job, skips)]  # fmt: skip
         except Exception:  # noqa: BLE001 - a broken frame skips its scene, never the run
             skips["corrupt_image"] += 1
+            continue
+        samples.extend(made)
+        used_keys.append(key)
     tmp = shard.with_suffix(".tar.tmp")
     write_tar(tmp, samples)
     os.replace(tmp, shard)
