@@ -32,7 +32,7 @@ class Probe(L.LightningModule):
         return ((colour - self.weight) ** 2).sum()
 
     def validation_step(self, batch: BatchedExample, batch_idx: int) -> None:
-        self.log("val/probe", batch.float_images().target.images.mean())
+        self.log("val/probe", batch.float_images().target.images.mean(), batch_size=batch.batch_size)
 
     def configure_optimizers(self):
         return torch.optim.SGD(self.parameters(), lr=0.1)
