@@ -12,10 +12,10 @@ import torch
 from torch import Tensor
 
 
-def _check(name: str, t: Any, ndim: int, tail: tuple[int | None, ...] = ()) -> None:
+def _check(name: str, t: Any, ndim: int, tail: tuple[int | None, ...] = (), allow_uint8: bool = False) -> None:
     if not isinstance(t, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
-    if not t.is_floating_point():
+    if not t.is_floating_point() and not (allow_uint8 and t.dtype == torch.uint8):
         raise TypeError(f"{name} must be a floating-point tensor, got dtype {t.dtype}")
     if t.ndim != ndim:
         raise ValueError(f"{name} must have {ndim} dimensions, got shape {tuple(t.shape)}")
@@ -128,10 +128,8 @@ class BatchedViews(_TensorContainer):
     index: Tensor
 
     def __post_init__(self) -> None:
-        if self.images.dtype == torch.uint8:  # decoded on the loader, converted on the device
-            _check("BatchedViews.images", self.images.float(), 5, (3, None, None))
-        else:
-            _check("BatchedViews.images", self.images, 5, (3, None, None))
+        # uint8 images come straight from the loader and are converted on the device.
+        _check("BatchedViews.images", self.images, 5, (3, None, None), allow_uint8=True)
         _check("BatchedViews.extrinsics", self.extrinsics, 4, (4, 4))
         _check("BatchedViews.intrinsics", self.intrinsics, 4, (3, 3))
         _check("BatchedViews.near", self.near, 2)
