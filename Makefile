@@ -41,6 +41,7 @@ DEMO_RUN := $(DEMO_DIR)/run
 DEMO_CKPT := $(DEMO_RUN)/checkpoints/last.ckpt
 DEMO_TIMES := $(DEMO_DIR)/timings.csv
 DEMO_ARGS := -c $(DEMO_CONFIG) --data.root $(DEMO_DIR)/shards --data.image_size $(DEMO_SIZE)
+DEMO_FIT_ARGS ?=  # extra `aesplat fit` overrides, e.g. DEMO_FIT_ARGS="--trainer.max_steps 200"
 AESPLAT := $(VENV)/bin/aesplat
 # Lightning's CSV logger writes metrics.csv (the loss curve) and config.yaml straight into the run directory.
 DEMO_LOG := --trainer.logger+=CSVLogger --trainer.logger.save_dir $(DEMO_RUN) --trainer.logger.name "" \
@@ -57,7 +58,7 @@ demo: $(STAMP)
 	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_DIR)/initial \
 		--trainer.logger false && $(call timed,aesplat test (untrained))
 	t0=$$(date +%s); $(AESPLAT) fit $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_RUN) $(DEMO_LOG) \
-		&& $(call timed,aesplat fit)
+		$(DEMO_FIT_ARGS) && $(call timed,aesplat fit)
 	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_RUN) \
 		--trainer.logger false --ckpt_path $(DEMO_CKPT) && $(call timed,aesplat test (trained))
 	t0=$$(date +%s); $(AESPLAT) bench --ckpt $(DEMO_CKPT) --out $(DEMO_DIR)/bench --scenes 2 --repeats 3 \

@@ -139,11 +139,16 @@ def test_load_checkpoint_restores_the_trained_weights(tiny_ckpt):
 
 
 def test_load_checkpoint_errors(tmp_path):
-    with pytest.raises(SystemExit, match="not found"):
+    with pytest.raises(FileNotFoundError, match="not found"):
         load_checkpoint(tmp_path / "nope.ckpt")
     torch.save({"something": 1}, tmp_path / "other.ckpt")
-    with pytest.raises(SystemExit, match="not an aesplat checkpoint"):
+    with pytest.raises(ValueError, match="not an aesplat checkpoint"):
         load_checkpoint(tmp_path / "other.ckpt")
+    (tmp_path / "text.ckpt").write_text("hello")
+    with pytest.raises(ValueError, match="not a readable torch checkpoint"):
+        load_checkpoint(tmp_path / "text.ckpt")
+    with pytest.raises(SystemExit, match="aesplat predict: .*not an aesplat checkpoint"):
+        main(["--ckpt", str(tmp_path / "other.ckpt"), "--out", str(tmp_path), "a.png", "b.png"])
 
 
 # ----------------------------------------------------------------------------------------------- end to end

@@ -594,7 +594,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
-    loaded = load_checkpoint(args.ckpt, device)
+    try:
+        loaded = load_checkpoint(args.ckpt, device)
+    except (FileNotFoundError, ValueError) as err:
+        raise SystemExit(f"aesplat bench: {err}") from err
     scenes = evaluation_scenes(loaded, args.data_root, args.image_size, args.scenes, device)
     if not scenes:
         raise SystemExit("aesplat bench: the test split holds no scenes")

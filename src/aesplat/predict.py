@@ -211,13 +211,16 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
 
     path = Path(path)
     if not path.is_file():
-        raise SystemExit(
+        raise FileNotFoundError(
             f"checkpoint {str(path)!r} not found (aesplat fit writes RUN_DIR/checkpoints/last.ckpt)"
         )
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    hparams = ckpt.get("hyper_parameters") or {}
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch.load fails on garbage with anything from KeyError to UnpicklingError
+        raise ValueError(f"{str(path)!r} is not a readable torch checkpoint ({err})") from err
+    hparams = ckpt.get("hyper_parameters") or {} if isinstance(ckpt, dict) else {}
     if "net" not in hparams or "state_dict" not in ckpt:
-        raise SystemExit(f"{str(path)!r} is not an aesplat checkpoint (no 'net' hyper-parameters / state_dict)")
+        raise ValueError(f"{str(path)!r} is not an aesplat checkpoint (no 'net' hyper-parameters / state_dict)")
     net = dict(hparams["net"])
     model = build_model(size=net["size"], appearance=net["appearance"], sh_degree=net["sh_degree"],
                         near=net["near"], far=net["far"], weights=None, **net.get("options", {}))  # fmt: skip
@@ -388,7 +391,10 @@ def main(argv: list[str] | None = None) -> int:
     if len(args.images) < 2:
         raise SystemExit("aesplat predict: give at least two images of the same scene")
     device = resolve_device(args.device)
-    loaded = load_checkpoint(args.ckpt, device)
+    try:
+        loaded = load_checkpoint(args.ckpt, device)
+    except (FileNotFoundError, ValueError) as err:
+        raise SystemExit(f"aesplat predict: {err}") from err
     size = args.size or loaded.image_size
     if size % PATCH != 0:
         raise SystemExit(f"aesplat predict: --size {size} is not a multiple of the patch size {PATCH}")
