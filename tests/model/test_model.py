@@ -251,3 +251,11 @@ def test_bf16_autocast_runs_transformer_in_bf16_and_heads_in_fp32(model):
     g = out.gaussians
     assert all(t.dtype == torch.float32 for t in (g.means, g.sh, g.scales, out.extrinsics, out.depth))
     assert _all_finite(out) and _backward_is_finite(model, out)
+
+
+def test_gaussian_rotations_are_composed_with_the_camera_rotation():
+    from aesplat.geometry import quat_to_matrix
+    from aesplat.model.model import _quat_multiply
+
+    a, b = torch.nn.functional.normalize(torch.randn(2, 50, 4), dim=-1)
+    torch.testing.assert_close(quat_to_matrix(_quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b))
