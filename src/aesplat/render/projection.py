@@ -162,23 +162,28 @@ def project_gaussians(
             t = (jr[:, :, :, None] * rs[:, None]).sum(2)  # J R R_q S [M, 2, 3]; 2D cov = t t^T
             return (t[:, 0] * t[:, 0]).sum(-1), (t[:, 0] * t[:, 1]).sum(-1), (t[:, 1] * t[:, 1]).sum(-1)
 
-    # 3. footprint cull, decided without autograd so no culled row can leak a NaN into the backward.
+    # 3. footprint cull. Selecting rows is safe for the backward only if no row holds a non-finite value
+    # (0 * inf = NaN); otherwise the survivors are projected again on their own.
+    ewa = _ewa(flat_means, shape, cameras, cam, gid, height, width, eps2d)
     with torch.no_grad():
-        means2d, conic_cov, depth = _ewa(flat_means, shape, cameras, cam, gid, height, width, eps2d)
-        ca, cb, cc = conic_cov
+        m2, (ca, cb, cc), _ = ewa
         det = ca * cc - cb * cb
         opac = gaussians.opacities.reshape(b * n)[gid]
-        ok = torch.isfinite(ca) & torch.isfinite(cb) & torch.isfinite(cc) & torch.isfinite(means2d).all(-1)
+        ok = torch.isfinite(ca) & torch.isfinite(cb) & torch.isfinite(cc) & torch.isfinite(m2).all(-1)
+        all_finite = bool(ok.all())
         ok &= det > 0
         rad_x, rad_y = _radii(ca, cc, opac, ok)
-        on_screen = (means2d[:, 0] + rad_x > 0) & (means2d[:, 0] - rad_x < width)
-        on_screen &= (means2d[:, 1] + rad_y > 0) & (means2d[:, 1] - rad_y < height)
+        on_screen = (m2[:, 0] + rad_x > 0) & (m2[:, 0] - rad_x < width)
+        on_screen &= (m2[:, 1] + rad_y > 0) & (m2[:, 1] - rad_y < height)
         visible = ok & ((rad_x > 0) | (rad_y > 0)) & on_screen
         sel = visible.nonzero(as_tuple=True)[0]
     footprint = int(cam.numel() - sel.numel())
 
     cam_v, gid_v = cam[sel], gid[sel]
-    means2d, (ca, cb, cc), depth = _ewa(flat_means, shape, cameras, cam_v, gid_v, height, width, eps2d)
+    if all_finite:
+        means2d, (ca, cb, cc), depth = ewa[0][sel], tuple(t[sel] for t in ewa[1]), ewa[2][sel]
+    else:
+        means2d, (ca, cb, cc), depth = _ewa(flat_means, shape, cameras, cam_v, gid_v, height, width, eps2d)
     det = ca * cc - cb * cb  # > 0 for every survivor
     conics = torch.stack([cc / det, -cb / det, ca / det], dim=-1)
 
