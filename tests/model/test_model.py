@@ -3,8 +3,9 @@
 import pytest
 import torch
 
-from aesplat.geometry import DEFAULT_FOV, focal_to_fov, num_sh_coeffs
+from aesplat.geometry import DEFAULT_FOV, focal_to_fov, num_sh_coeffs, quat_to_matrix
 from aesplat.model import APPEARANCE_MODES, ModelOutput, build_model, i2dc
+from aesplat.model.model import _quat_multiply
 from aesplat.types import Gaussians
 
 H = W = 28
@@ -254,8 +255,5 @@ def test_bf16_autocast_runs_transformer_in_bf16_and_heads_in_fp32(model):
 
 
 def test_gaussian_rotations_are_composed_with_the_camera_rotation():
-    from aesplat.geometry import quat_to_matrix
-    from aesplat.model.model import _quat_multiply
-
     a, b = torch.nn.functional.normalize(torch.randn(2, 50, 4), dim=-1)
     torch.testing.assert_close(quat_to_matrix(_quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b))
