@@ -62,6 +62,12 @@ def test_smoke_fit_then_test_writes_checkpoint_csv_and_json(shards, tmp_path):
     assert summary["metrics"]["lpips"] is None and "lpips" in summary["unavailable"]
     assert len(list((out / "renders").glob("*.png"))) == 2
 
+    # `--ckpt_path last` continues the run from its directory (one more epoch), with the same wandb id.
+    run_id = (run_dir / "wandb_run_id").read_text()
+    run_aesplat("fit", *common, "--trainer.max_steps", "8", "--ckpt_path", "last")
+    assert torch.load(last, weights_only=True, map_location="cpu")["global_step"] == 8
+    assert (run_dir / "wandb_run_id").read_text() == run_id
+
 
 def print_config(capsys, *args: str) -> str:
     with pytest.raises(SystemExit) as info:
