@@ -24,6 +24,8 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 from torchmetrics import MeanMetric
 
+from aesplat.model import build_model
+from aesplat.render import render
 from aesplat.types import BatchedExample, RenderOutput
 
 from .evaluation import save_image, visual_grid, write_results
@@ -81,19 +83,10 @@ class AESplatModule(LightningModule):
             _as(NetConfig, net), _as(LossConfig, loss), _as(OptimConfig, optim),
             _as(RenderConfig, render), _as(EvalConfig, eval),
         )  # fmt: skip
-        self.save_hyperparameters(
-            {
-                "net": asdict(net),
-                "loss": asdict(loss),
-                "optim": asdict(optim),
-                "render": asdict(render),
-                "eval": asdict(eval),
-            }  # fmt: skip
-        )
-        self.net_cfg, self.optim_cfg, self.render_cfg, self.eval_cfg = net, optim, render, eval
+        configs = {"net": net, "loss": loss, "optim": optim, "render": render, "eval": eval}
+        self.save_hyperparameters({name: asdict(cfg) for name, cfg in configs.items()})
+        self.optim_cfg, self.render_cfg, self.eval_cfg = optim, render, eval
         self.automatic_optimization = False
-
-        from aesplat.model import build_model
 
         self.model = build_model(
             size=net.size, appearance=net.appearance, sh_degree=net.sh_degree, near=net.near, far=net.far,
@@ -125,8 +118,6 @@ class AESplatModule(LightningModule):
         height, width = batch.context.image_shape
         out = self.model(batch.context.images, batch.target.images)
         background = torch.tensor(self.render_cfg.background, device=self.device)
-        from aesplat.render import render
-
         rendered = render(
             out.gaussians, out.extrinsics[:, vc:], out.intrinsics[:, vc:], height, width,
             background=background, backend=self.render_cfg.backend, **self.render_cfg.options,
