@@ -7,14 +7,13 @@ target camera (torch backend). Every module is timed on its own with the inputs 
 forward pass (inputs detached, float inputs requiring grad, backward of the mean of its outputs), so the
 per-module figures add up to roughly the end-to-end ones. Peak memory is the peak of live tensor memory
 allocated during the call (tracked op by op with a dispatch mode; parameters and inputs excluded), measured
-in a separate run from the timings. Prints markdown.
+in a separate run from the timings. Times are the fastest of --reps calls. Prints markdown.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import statistics
 import sys
 import time
 import weakref
@@ -91,7 +90,9 @@ def _backward(out) -> None:
 
 
 def _measure(fn: Callable[[], None], reps: int, warmup: int) -> tuple[float, float]:
-    """(median milliseconds over ``reps`` after ``warmup`` calls, peak tensor MiB of one extra call)."""
+    """(fastest of ``reps`` calls in milliseconds after ``warmup`` calls, peak tensor MiB of one extra call).
+
+    The minimum, not the median: on a shared machine the other processes only ever add time."""
     for _ in range(warmup):
         fn()
     times = []
@@ -101,7 +102,7 @@ def _measure(fn: Callable[[], None], reps: int, warmup: int) -> tuple[float, flo
         times.append(1e3 * (time.perf_counter() - start))
     with PeakTensorMemory() as mem:
         fn()
-    return statistics.median(times), mem.peak / 2**20
+    return min(times), mem.peak / 2**20
 
 
 def bench_size(
