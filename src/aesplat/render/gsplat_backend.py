@@ -127,8 +127,8 @@ def render_gsplat(
     g32 = gaussians.to(dtype=torch.float32)
     folded = fold_cameras(g32, extrinsics.float(), intrinsics.float(), sh_degree)
     scale = folded.means.new_tensor([width, height, 1.0])[:, None]
-    k_pix = (folded.intrinsics * scale).expand(b * v, 1, 3, 3)
-    view = torch.eye(4, device=folded.means.device).expand(b * v, 1, 4, 4)
+    k_pix = (folded.intrinsics * scale).expand(b * v, 1, 3, 3).contiguous()
+    view = torch.eye(4, device=folded.means.device).expand(b * v, 1, 4, 4).contiguous()
     colors, alphas, _ = gsplat.rasterization(
         means=folded.means, quats=None, scales=None, covars=folded.covariances,
         opacities=folded.opacities, colors=folded.colors, viewmats=view, Ks=k_pix,
