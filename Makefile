@@ -43,9 +43,9 @@ DEMO_TIMES := $(DEMO_DIR)/timings.csv
 DEMO_ARGS := -c $(DEMO_CONFIG) --data.root $(DEMO_DIR)/shards --data.image_size $(DEMO_SIZE)
 DEMO_FIT_ARGS ?=  # extra `aesplat fit` overrides, e.g. DEMO_FIT_ARGS="--trainer.max_steps 200"
 AESPLAT := $(VENV)/bin/aesplat
-# Lightning's CSV logger writes metrics.csv (the loss curve) and config.yaml straight into the run directory.
+# Lightning's CSV logger writes metrics.csv (the loss curve: every step) and config.yaml into the run directory.
 DEMO_LOG := --trainer.logger+=CSVLogger --trainer.logger.save_dir $(DEMO_RUN) --trainer.logger.name "" \
-	--trainer.logger.version ""
+	--trainer.logger.version "" --trainer.log_every_n_steps 1
 # After a stage's command: append "stage,seconds since t0" to the timings table.
 timed = echo "$(1),$$(( $$(date +%s) - t0 ))" >> $(DEMO_TIMES)
 

@@ -101,7 +101,7 @@ def test_bench_figures_match_a_direct_render(model, scenes):
     scenes = scenes[:1]
     bench = Bench(model, scenes, torch.device("cpu"), repeats=1, warmup=0,
                   render_kwargs={"background": background}, progress=False)  # fmt: skip
-    rows = bench.run(points, baseline)
+    rows = bench.run(points, baseline, warmup_runs=0)
     by = {(r.knob, r.label): r for r in rows}
 
     # The baseline, measured here by hand: predicted target cameras, every SH band, full size.
@@ -132,7 +132,7 @@ def test_input_size_and_precision_run_their_own_forward(model, scenes):
     points = [Point("input_size", "14 px", replace(base, input_size=14)), Point("precision", "bf16",
               replace(base, precision="bf16")), Point("precision", "fp32", base)]  # fmt: skip
     bench = Bench(model, scenes[:1], torch.device("cpu"), repeats=1, warmup=0, progress=False)
-    rows = bench.run(points, base)
+    rows = bench.run(points, base, warmup_runs=1)
     assert len(bench._forwards) == 3
     small = bench._forwards[(14, "fp32")][0]
     assert small.gaussians.num_gaussians == 2 * 14 * 14  # one Gaussian per input pixel
@@ -143,7 +143,8 @@ def test_input_size_and_precision_run_their_own_forward(model, scenes):
 def test_a_failing_setting_is_reported_not_fatal(model, scenes):
     base = Setting()
     points = [Point("backend", "nope", replace(base, backend="nope")), Point("backend", "torch", base)]
-    rows = Bench(model, scenes[:1], torch.device("cpu"), repeats=1, warmup=0, progress=False).run(points, base)
+    bench = Bench(model, scenes[:1], torch.device("cpu"), repeats=1, warmup=0, progress=False)
+    rows = bench.run(points, base, warmup_runs=0)
     assert "unknown render backend" in rows[0].skipped and math.isnan(rows[0].psnr)
     assert not rows[1].skipped
     assert "not measured here" in markdown_tables(rows, {})
@@ -186,7 +187,7 @@ def test_bench_command_end_to_end(tmp_path):
     ckpt = write_tiny_checkpoint(tmp_path / "run", data_root=str(tmp_path / "shards"), image_size=SIZE)
     assert main(["--ckpt", str(ckpt), "--knobs", "render_size,min_opacity", "--render-scales", "1",
                  "--min-opacities", "0.5", "--scenes", "1", "--repeats", "1", "--warmup", "0",
-                 "--no-progress"]) == 0  # fmt: skip
+                 "--process-warmup", "0", "--no-progress"]) == 0  # fmt: skip
     out = tmp_path / "run" / "bench"  # the default: next to the run
     rows = json.loads((out / "bench.json").read_text())["rows"]
     labels = [(r["knob"], r["label"]) for r in rows]
