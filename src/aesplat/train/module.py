@@ -24,7 +24,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 from torchmetrics import MeanMetric
 
-from aesplat.model import build_model
+from aesplat.model import ModelOutput, build_model
 from aesplat.render import render
 from aesplat.types import BatchedExample, RenderOutput
 
@@ -112,7 +112,7 @@ class AESplatModule(LightningModule):
         return batch.float_images()
 
     # ----------------------------------------------------------------------------------------- forward
-    def forward(self, batch: BatchedExample):
+    def forward(self, batch: BatchedExample) -> tuple[ModelOutput, RenderOutput]:
         """Model outputs and the renders of the target views with the predicted target cameras."""
         vc = batch.context.num_views
         height, width = batch.context.image_shape
@@ -140,7 +140,7 @@ class AESplatModule(LightningModule):
         for name, lr in current_learning_rates(optimizer.optimizer).items():
             self.log(f"lr/{name}", lr, on_step=True, on_epoch=False)
 
-        out, rendered = self(batch)
+        _, rendered = self(batch)
         terms = self.loss_fn(rendered.color, batch.target.images)
         optimizer.zero_grad(set_to_none=True)
         # Always backward, even on a NaN loss: under DDP every rank must join the gradient all-reduce.
@@ -169,7 +169,7 @@ class AESplatModule(LightningModule):
         self.log("train/skipped_steps", float(self.skipped_steps), batch_size=b)
         every = self.eval_cfg.log_images_every_n_steps
         if every > 0 and self.global_step % every == 0:
-            self._log_images("train/images", batch, out, rendered)
+            self._log_images("train/images", batch, rendered)
         return terms["total"].detach()
 
     def on_train_epoch_end(self) -> None:
@@ -180,7 +180,7 @@ class AESplatModule(LightningModule):
                 self.log(f"data/{key}", float(count), rank_zero_only=True)
 
     # ----------------------------------------------------------------------------------------- evaluation
-    def _evaluate(self, batch: BatchedExample) -> tuple[dict[str, Tensor], RenderOutput, object]:
+    def _evaluate(self, batch: BatchedExample) -> tuple[dict[str, Tensor], RenderOutput]:
         """Per-scene metrics: image metrics averaged over each scene's target views, pose errors over views."""
         out, rendered = self(batch)
         b, vt = batch.target.images.shape[:2]
@@ -192,14 +192,14 @@ class AESplatModule(LightningModule):
         gt = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1)
         rot, trans = relative_pose_errors(out.extrinsics, gt)
         metrics["rot_err_deg"], metrics["trans_err_deg"] = rot.mean(1), trans.mean(1)
-        return metrics, rendered, out
+        return metrics, rendered
 
     def validation_step(self, batch: BatchedExample, batch_idx: int) -> None:
-        metrics, rendered, out = self._evaluate(batch)
+        metrics, rendered = self._evaluate(batch)
         for key, values in metrics.items():
             self.val_means[key].update(values)
         if batch_idx == 0:
-            self._log_images("val/images", batch, out, rendered)
+            self._log_images("val/images", batch, rendered)
 
     def on_validation_epoch_end(self) -> None:
         for key, metric in self.val_means.items():
@@ -209,7 +209,7 @@ class AESplatModule(LightningModule):
             metric.reset()
 
     def test_step(self, batch: BatchedExample, batch_idx: int) -> None:
-        metrics, rendered, _ = self._evaluate(batch)
+        metrics, rendered = self._evaluate(batch)
         for i in range(batch.batch_size):
             overlap = None if batch.overlap is None else float(batch.overlap[i])
             row = {
@@ -279,7 +279,7 @@ class AESplatModule(LightningModule):
             random.setstate(rng["python"])
 
     # ----------------------------------------------------------------------------------------- logging
-    def _log_images(self, key: str, batch: BatchedExample, out, rendered: RenderOutput) -> None:
+    def _log_images(self, key: str, batch: BatchedExample, rendered: RenderOutput) -> None:
         if not isinstance(self.logger, WandbLogger) or not self.trainer.is_global_zero:
             return
         n = min(4, batch.batch_size)
