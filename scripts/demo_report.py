@@ -175,11 +175,11 @@ def loss_curve(metrics: list[dict[str, float]], initial_psnr: float, trained_psn
         return False
     val = [r for r in metrics if "val/psnr" in r and "step" in r]
     steps = [r["step"] for r in train]
-    window = max(1, len(train) // 20)
+    window = max(1, min(50, len(train) // 8))  # batch losses of a few scenes are noisy: show the trend
     fig, (ax_loss, ax_psnr) = plt.subplots(1, 2, figsize=(12, 4.2))
     loss = [r["train/loss"] for r in train]
     ax_loss.plot(steps, loss, color="C0", alpha=0.3, label="train loss")
-    ax_loss.plot(steps, smooth(loss, window), color="C0", label=f"moving average ({window} steps)")
+    ax_loss.plot(steps, smooth(loss, window), color="C0", label=f"moving average ({window} logged steps)")
     ax_loss.set_yscale("log")
     ax_loss.set_xlabel("step")
     ax_loss.set_ylabel("loss (MSE + λ·LPIPS)")

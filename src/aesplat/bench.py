@@ -28,6 +28,7 @@ import csv
 import inspect
 import json
 import math
+import os
 import platform
 import statistics
 import time
@@ -505,8 +506,21 @@ def write_report(rows: Sequence[Row], out_dir: str | Path, meta: dict) -> dict[s
 
 def machine_meta(device: torch.device) -> dict:
     """Where the figures were measured."""
-    name = torch.cuda.get_device_name(device) if device.type == "cuda" else (platform.processor() or "cpu")
+    if device.type == "cuda":
+        name = torch.cuda.get_device_name(device)
+    else:
+        name = _cpu_name() or platform.processor() or platform.machine()
+        name = f"{name}, {os.cpu_count()} logical cores"
     return {"device": f"{device.type} ({name})", "torch": torch.__version__, "threads": torch.get_num_threads()}
+
+
+def _cpu_name() -> str:
+    """The CPU model from /proc/cpuinfo (Linux), else an empty string."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), "")
+    except OSError:
+        return ""
 
 
 # ---------------------------------------------------------------------------------------------------
