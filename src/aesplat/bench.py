@@ -44,6 +44,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from .export import drop_transparent, keep_most_opaque
+from .predict import HelpFormatter
 from .render import render
 from .train.metrics import psnr, ssim
 from .types import BatchedExample, BatchedViews, Gaussians
@@ -540,7 +541,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="aesplat bench",
         description="Accuracy versus time: sweep every quality knob of a trained model on evaluation scenes "
         "and write tables (markdown, CSV) and a plot of PSNR/SSIM against milliseconds.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--ckpt", required=True, help="checkpoint written by `aesplat fit`")
     parser.add_argument("--out", default=None, help="output directory (default: RUN_DIR/bench next to the "

@@ -350,12 +350,21 @@ def write_outputs(
 # Command line
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows defaults, except None / False ones (their help says what happens instead)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="aesplat predict",
         description="Predict cameras and 3D Gaussians from unposed images with a trained checkpoint; write a "
         "3DGS PLY, the cameras, re-renders of the inputs, depth maps and a short novel-view path.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="two or more images of one scene (any size)")
     parser.add_argument("--ckpt", required=True, help="checkpoint written by `aesplat fit` (last.ckpt / best)")
