@@ -152,7 +152,7 @@ def test_load_vggt_aggregator(tmp_path):
     sd = vggt_state_dict(DIM, DEPTH, registers=4)
     path = tmp_path / "vggt.pt"
     torch.save(sd, path)
-    model = build_model("tiny", vggt_weights=str(path), encoder_registers=4, num_register_tokens=4)
+    model = build_model("tiny", weights=str(path), encoder_registers=4, num_register_tokens=4)
     report = model.weights_report
     assert report.format == "vggt" and report.missing == [] and report.unexpected == []
     assert set(report.ignored) == {"aggregator.patch_embed.mask_token", "camera_head.trunk.0.weight"}
@@ -164,4 +164,4 @@ def test_load_vggt_aggregator(tmp_path):
     assert torch.equal(t["register_token"], sd["aggregator.register_token"])
     assert torch.equal(model.encoder.state_dict()["reg_token"], sd["aggregator.patch_embed.register_tokens"])
     with pytest.raises(ValueError, match="register-token"):
-        build_model("tiny", vggt_weights=str(path), encoder_registers=4, num_register_tokens=2)
+        build_model("tiny", weights=str(path), encoder_registers=4, num_register_tokens=2)

@@ -16,7 +16,13 @@ from .encoder import EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead, GaussianHeadOutput
 from .model import SIZES, AESplatModel, ModelConfig, ModelOutput, build_model
 from .transformer import GeometryTransformer, TransformerConfig
-from .weights import WeightsReport, convert_encoder_state_dict, load_encoder_weights, load_vggt_weights
+from .weights import (
+    WeightsReport,
+    convert_encoder_state_dict,
+    load_encoder_weights,
+    load_pretrained_weights,
+    load_vggt_weights,
+)
 
 __all__ = [
     "APPEARANCE_MODES",
@@ -42,6 +48,7 @@ __all__ = [
     "gvsre_descriptor",
     "i2dc",
     "load_encoder_weights",
+    "load_pretrained_weights",
     "load_vggt_weights",
     "warped_color_map",
 ]

@@ -18,7 +18,7 @@ from .dpt import DepthHead
 from .encoder import PATCH_SIZE, EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead
 from .transformer import GeometryTransformer, TransformerConfig
-from .weights import WeightsReport, load_encoder_weights, load_vggt_weights
+from .weights import WeightsReport, load_pretrained_weights
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +44,7 @@ class ModelConfig:
     far: float = 100.0
     scale_multiplier: float = 0.001
     scale_max: float = 0.3
-    weights: str | None = None  # local encoder checkpoint (timm or DINOv2 format)
-    vggt_weights: str | None = None  # local VGGT checkpoint: encoder + geometry transformer (aggregator)
+    weights: str | None = None  # local timm / DINOv2 ViT/14 or VGGT checkpoint (see weights.py)
 
 
 SIZES: dict[str, ModelConfig] = {
@@ -149,13 +148,8 @@ class AESplatModel(nn.Module):
             self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max,
         )  # fmt: skip
         self.weights_report: WeightsReport | None = None
-        if cfg.weights and cfg.vggt_weights:
-            raise ValueError("give either `weights` (encoder only) or `vggt_weights` (encoder + transformer)")
         if cfg.weights:
-            self.weights_report = load_encoder_weights(self.encoder, cfg.weights)
-        elif cfg.vggt_weights:
-            self.weights_report = load_vggt_weights(self.encoder, self.transformer, cfg.vggt_weights)
-        if self.weights_report is not None:
+            self.weights_report = load_pretrained_weights(self.encoder, self.transformer, cfg.weights)
             log.info("loaded %d tensors from %s", len(self.weights_report.loaded), self.weights_report.path)
 
     @property

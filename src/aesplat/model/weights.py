@@ -138,7 +138,11 @@ def load_encoder_weights(encoder: PatchEncoder, path: str | Path) -> WeightsRepo
     Keys the encoder lacks and encoder parameters the checkpoint lacks are reported with a warning and
     returned in the :class:`WeightsReport`; a shape mismatch (a checkpoint of another size) is an error.
     """
-    state, fmt, ignored = convert_encoder_state_dict(_read(path, "encoder"))
+    return _load_encoder_state(encoder, _read(path, "encoder"), path)
+
+
+def _load_encoder_state(encoder: PatchEncoder, state: dict[str, Tensor], path: str | Path) -> WeightsReport:
+    state, fmt, ignored = convert_encoder_state_dict(state)
     report = WeightsReport(path=str(path), format=fmt, ignored=ignored)
     _load_matching(encoder, state, "", report, pos_grid=encoder.cfg.pos_grid)
     _warn(report)
@@ -155,7 +159,12 @@ def load_vggt_weights(
     Keys outside the aggregator (VGGT's camera, depth, point and track heads) are listed as ignored.
     Reported keys carry the model's prefixes (``encoder.``, ``transformer.``).
     """
-    state = _read(path, "VGGT")
+    return _load_vggt_state(encoder, transformer, _read(path, "VGGT"), path)
+
+
+def _load_vggt_state(
+    encoder: PatchEncoder, transformer: GeometryTransformer, state: dict[str, Tensor], path: str | Path
+) -> WeightsReport:
     enc_prefix, agg_prefix = "aggregator.patch_embed.", "aggregator."
     enc_state = {k[len(enc_prefix) :]: v for k, v in state.items() if k.startswith(enc_prefix)}
     agg_state = {k[len(agg_prefix) :]: v for k, v in state.items() if k.startswith(agg_prefix)}
@@ -167,3 +176,15 @@ def load_vggt_weights(
     _load_matching(transformer, agg_state, "transformer.", report)
     _warn(report)
     return report
+
+
+def load_pretrained_weights(
+    encoder: PatchEncoder, transformer: GeometryTransformer, path: str | Path
+) -> WeightsReport:
+    """Load a local checkpoint, whichever of the supported kinds it is: a VGGT checkpoint (keys under
+    ``aggregator.``) into the encoder and the geometry transformer, otherwise a timm or DINOv2 ViT/14 into
+    the encoder. This is what ``build_model(weights=...)`` calls."""
+    state = _read(path, "pretrained")  # read once: VGGT checkpoints are several GB
+    if any(k.startswith("aggregator.") for k in state):
+        return _load_vggt_state(encoder, transformer, state, path)
+    return _load_encoder_state(encoder, state, path)
