@@ -210,5 +210,7 @@ def test_predict_rejects_bad_input(tiny_ckpt, tmp_path):
         main(["--ckpt", str(tiny_ckpt), "--out", out, str(good)])
     with pytest.raises(SystemExit, match="multiple of the patch size"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, "--size", "30", str(good), str(good)])
+    with pytest.raises(SystemExit, match="built for 2 context views, got 3"):
+        main(["--ckpt", str(tiny_ckpt), "--out", out, str(good), str(good), str(good)])
     with pytest.raises(SystemExit, match="ply-sh-degree"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, "--ply-sh-degree", "4", str(good), str(good)])

@@ -366,7 +366,9 @@ def build_parser() -> argparse.ArgumentParser:
         "3DGS PLY, the cameras, re-renders of the inputs, depth maps and a short novel-view path.",
         formatter_class=HelpFormatter,
     )
-    parser.add_argument("images", nargs="+", metavar="IMAGE", help="two or more images of one scene (any size)")
+    parser.add_argument("images", nargs="+", metavar="IMAGE",
+                        help="images of one scene, any size: as many as the checkpoint's context views (2 for "
+                        "the paper's models)")  # fmt: skip
     parser.add_argument("--ckpt", required=True, help="checkpoint written by `aesplat fit` (last.ckpt / best)")
     parser.add_argument("--out", required=True, help="output directory (created if missing)")
     parser.add_argument("--size", type=int, default=None,
@@ -419,7 +421,10 @@ def main(argv: list[str] | None = None) -> int:
     names = [Path(p).stem for p in args.images]
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    pred = predict_scene(loaded.model, images)
+    try:
+        pred = predict_scene(loaded.model, images)
+    except ValueError as err:  # e.g. more images than the context views the checkpoint was built for
+        raise SystemExit(f"aesplat predict: {err}") from err
     options = {**loaded.render.get("options", {}), "backend": args.backend,
                "background": loaded.background.to(device)}  # fmt: skip
     write_outputs(
