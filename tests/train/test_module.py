@@ -142,3 +142,7 @@ def test_checkpoint_has_no_lpips_and_loads_weights_only(smoke_shards, tmp_path):
     assert not any("lpips" in key for key in ckpt["state_dict"])
     assert ckpt["skipped_steps"] == 0 and "rng" in ckpt
     assert ckpt["hyper_parameters"]["optim"]["appearance_lr"] == pytest.approx(3e-4)
+    # The checkpoint rebuilds its module on its own (predict, bench).
+    loaded = AESplatModule.load_from_checkpoint(tmp_path / "ckpt" / "last.ckpt", map_location="cpu")
+    assert loaded.hparams["net"]["size"] == "tiny"
+    assert all(torch.equal(v, ckpt["state_dict"][k]) for k, v in loaded.state_dict().items())

@@ -270,7 +270,8 @@ class AESplatModule(LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         self.skipped_steps = int(checkpoint.get("skipped_steps", 0))
         rng = checkpoint.get("rng")
-        if rng is not None and self.trainer is not None and self.trainer.training:
+        trainer = self._trainer  # None when loaded outside a Trainer (load_from_checkpoint)
+        if rng is not None and trainer is not None and trainer.training:
             torch.set_rng_state(rng["torch"])
             if rng["cuda"] and torch.cuda.is_available() and len(rng["cuda"]) == torch.cuda.device_count():
                 torch.cuda.set_rng_state_all(rng["cuda"])
