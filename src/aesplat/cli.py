@@ -71,7 +71,7 @@ def _lightning_cli():
                 }
             )
             parser.add_lightning_class_args(Throughput, "throughput")
-            parser.add_dataclass_arguments(WandbConfig, "wandb")
+            parser.add_class_arguments(WandbConfig, "wandb")
 
         def before_instantiate_classes(self) -> None:
             cfg = self.config[self.subcommand]
