@@ -74,19 +74,21 @@ def _exponent(p: Tensor, centre: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]
 def _alphas(coeffs: Tensor, mono: Tensor) -> tuple[Tensor, Tensor]:
     """Unclamped o exp(-sigma) and the composited alpha (clamped to 0.99, 0 below 1/255), both [a, C, P]."""
     raw = torch.exp(coeffs @ mono)
-    alpha = torch.where(raw >= ALPHA_MIN, raw.clamp_max(ALPHA_MAX), torch.zeros_like(raw))
+    alpha = torch.where(raw >= ALPHA_MIN, raw.clamp_max(ALPHA_MAX), 0.0)
     return raw, alpha
 
 
-def _transmittance(alpha: Tensor, t0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Transmittance after each Gaussian [a, C, P], weights alpha * T_before [a, C, P] and inclusion mask.
+def _transmittance(alpha: Tensor, t0: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Transmittance after each Gaussian [a, C, P], weights alpha * T_before [a, C, P], inclusion mask
+    and 1 - alpha [a, C, P].
 
     ``t0`` [a, P] is the transmittance entering the chunk, 0 for pixels that have already stopped.
     """
-    prod = torch.cumprod(1.0 - alpha, dim=1) * t0[:, None]
+    keep = 1.0 - alpha
+    prod = torch.cumprod(keep, dim=1).mul_(t0[:, None])
     incl = prod > T_MIN
-    wgt = torch.where(incl, alpha * prod / (1.0 - alpha), torch.zeros_like(prod))
-    return prod, wgt, incl
+    wgt = torch.where(incl, (alpha * prod).div_(keep), 0.0)
+    return prod, wgt, incl, keep
 
 
 def _forward_chunk(p: Tensor, centre: Tensor, valid: Tensor, t0: Tensor, mono: Tensor):
@@ -94,7 +96,7 @@ def _forward_chunk(p: Tensor, centre: Tensor, valid: Tensor, t0: Tensor, mono: T
     and which pixels stopped in it [a, P] (t0 is 0 for pixels that had stopped before)."""
     coeffs, _ = _exponent(p, centre, valid)
     _, alpha = _alphas(coeffs, mono)
-    prod, wgt, incl = _transmittance(alpha, t0)
+    prod, wgt, incl, _ = _transmittance(alpha, t0)
     f_add = p[..., 6:10].transpose(1, 2) @ wgt
     t_new = torch.where(incl, prod, t0[:, None]).amin(1)
     return f_add, t_new, prod[:, -1] <= T_MIN
@@ -110,13 +112,15 @@ def _backward_chunk(
     """
     coeffs, m = _exponent(p, centre, valid)
     raw, alpha = _alphas(coeffs, mono)
-    prod, wgt, incl = _transmittance(alpha, t0)
+    prod, wgt, incl, keep = _transmittance(alpha, t0)
     gi = p[..., 6:10] @ gf  # [a, C, P]: d L / d w_i per pixel
     wg = wgt * gi
     total = suffix + wg.sum(1)
-    after = total[:, None] - wg.cumsum(1)  # sum over j > i
-    d_alpha = (prod * gi - after) / (1.0 - alpha)
-    q = torch.where(incl & (alpha > 0) & (raw < ALPHA_MAX), d_alpha * raw, torch.zeros_like(raw))
+    after = wg.cumsum_(1).neg_().add_(total[:, None])  # sum over j > i
+    d_alpha = gi.mul_(prod).sub_(after).div_(keep)
+    # alpha > 0 exactly where raw >= 1/255 (the clamp keeps it at 0.99 > 0 otherwise)
+    mask = incl.logical_and_(raw >= ALPHA_MIN).logical_and_(raw < ALPHA_MAX)
+    q = torch.where(mask, d_alpha.mul_(raw), 0.0)
     # d loss / d sigma = -q; the pixel sums below are polynomial moments of q (one small matmul).
     s0, su, sv, suu, suv, svv = (q @ mono.transpose(0, 1)).unbind(-1)
     mx, my = m.unbind(-1)
