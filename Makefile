@@ -36,7 +36,8 @@ format: $(STAMP)
 # model is evaluated at its last checkpoint (validation runs on the test split, so "best" would be chosen on it).
 DEMO_CONFIG ?= conf/demo.yaml
 DEMO_DIR ?= outputs/demo
-DEMO_SIZE ?= 56
+# Image size of the demo shards; the same as data.image_size in conf/demo.yaml (its settings are tuned for 42).
+DEMO_SIZE ?= 42
 DEMO_RUN := $(DEMO_DIR)/run
 DEMO_CKPT := $(DEMO_RUN)/checkpoints/last.ckpt
 DEMO_TIMES := $(DEMO_DIR)/timings.csv
