@@ -207,7 +207,7 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
     (the trained weights come from the checkpoint), then the ``model.*`` entries of the state dict are loaded
     strictly.
     """
-    from .model import build_model
+    from .model import NetConfig
 
     path = Path(path)
     if not path.is_file():
@@ -222,8 +222,8 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
     if "net" not in hparams or "state_dict" not in ckpt:
         raise ValueError(f"{str(path)!r} is not an aesplat checkpoint (no 'net' hyper-parameters / state_dict)")
     net = dict(hparams["net"])
-    model = build_model(size=net["size"], appearance=net["appearance"], sh_degree=net["sh_degree"],
-                        near=net["near"], far=net["far"], weights=None, **net.get("options", {}))  # fmt: skip
+    # The trained weights come from the checkpoint, not from the run's pretrained-weights file.
+    model = NetConfig(**{**net, "weights": None}).build()
     state = {k[len("model.") :]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
     model.load_state_dict(state, strict=True)
     model.to(device).eval()

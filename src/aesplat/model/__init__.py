@@ -14,7 +14,7 @@ from .camera_head import CameraHead
 from .dpt import DPT, DepthHead
 from .encoder import EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead, GaussianHeadOutput
-from .model import SIZES, AESplatModel, ModelConfig, ModelOutput, build_model
+from .model import SIZES, AESplatModel, ModelConfig, ModelOutput, NetConfig, build_model
 from .transformer import GeometryTransformer, TransformerConfig
 from .weights import (
     WeightsReport,
@@ -39,6 +39,7 @@ __all__ = [
     "GeometryTransformer",
     "ModelConfig",
     "ModelOutput",
+    "NetConfig",
     "PatchEncoder",
     "TransformerConfig",
     "ViewDependentHead",

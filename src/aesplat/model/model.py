@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, fields, replace
+from typing import Any
 
 import torch
 from torch import Tensor, nn
@@ -263,3 +264,20 @@ def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4
     if cfg.appearance == "i2dc_only" and cfg.sh_degree != 0:
         log.info("appearance=i2dc_only uses SH degree 0 (requested %d)", cfg.sh_degree)
     return AESplatModel(cfg)
+
+
+@dataclass
+class NetConfig:
+    """A run's network settings: the arguments of :func:`build_model` (the ``model.net`` config section)."""
+
+    size: str = "tiny"
+    appearance: str = "full"  # full | no_gvsre | no_wcm | i2dc_only | baseline | baseline_i2dc
+    sh_degree: int = 4
+    near: float = 0.5
+    far: float = 100.0
+    weights: str | None = None  # local DINOv2/timm or VGGT checkpoint file; never downloaded
+    options: dict[str, Any] = field(default_factory=dict)  # any other build_model keyword (rope, ...)
+
+    def build(self) -> AESplatModel:
+        return build_model(size=self.size, appearance=self.appearance, sh_degree=self.sh_degree, near=self.near,
+                           far=self.far, weights=self.weights, **self.options)  # fmt: skip

@@ -24,7 +24,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 from torchmetrics import MeanMetric
 
-from aesplat.model import ModelOutput, build_model
+from aesplat.model import ModelOutput, NetConfig
 from aesplat.render import render
 from aesplat.types import BatchedExample, RenderOutput
 
@@ -32,19 +32,6 @@ from .evaluation import save_image, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, maybe_lpips
 from .metrics import overlap_bucket, psnr, relative_pose_errors, ssim
 from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates, discard_gradients
-
-
-@dataclass
-class NetConfig:
-    """Arguments of ``aesplat.model.build_model`` (SPEC section 3)."""
-
-    size: str = "tiny"
-    appearance: str = "full"  # full | no_gvsre | no_wcm | i2dc_only | baseline | baseline_i2dc
-    sh_degree: int = 4
-    near: float = 0.5
-    far: float = 100.0
-    weights: str | None = None  # local DINOv2/timm or VGGT checkpoint file; never downloaded
-    options: dict[str, Any] = field(default_factory=dict)  # any other build_model keyword (rope, ...)
 
 
 @dataclass
@@ -88,10 +75,7 @@ class AESplatModule(LightningModule):
         self.optim_cfg, self.render_cfg, self.eval_cfg = optim, render, eval
         self.automatic_optimization = False
 
-        self.model = build_model(
-            size=net.size, appearance=net.appearance, sh_degree=net.sh_degree, near=net.near, far=net.far,
-            weights=net.weights, **net.options,
-        )  # fmt: skip
+        self.model = net.build()
         if loss.lpips_weight > 0 or eval.metrics_lpips:
             lpips, self.lpips_unavailable = maybe_lpips(required=loss.lpips_weight > 0)
         else:
