@@ -41,6 +41,8 @@ def render_torch(
         height,
         width,
         settings.tile_size,
+        conics=proj.conics.detach(),
+        opacities=proj.opacities.detach(),
     )
     rgb, depth_sum, trans = composite(
         proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, bins, height, width,
