@@ -52,8 +52,8 @@ def _gather_chunk(
     pos = k0 + torch.arange(chunk, device=packed.device)
     valid = pos[None] < counts[:, None]  # [a, C]
     idx = (starts[:, None] + pos[None]).clamp_max(bins.order.numel() - 1)
-    gid = torch.where(valid, bins.order[idx], torch.zeros_like(idx))
-    return packed[gid], gid, valid
+    gid = torch.where(valid, bins.order.index_select(0, idx.reshape(-1)).view_as(idx), 0)
+    return packed.index_select(0, gid.reshape(-1)).view(*gid.shape, _PACK), gid, valid
 
 
 def _exponent(p: Tensor, centre: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
@@ -71,35 +71,58 @@ def _exponent(p: Tensor, centre: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]
     return coeffs, m
 
 
-def _alphas(coeffs: Tensor, mono: Tensor) -> tuple[Tensor, Tensor]:
-    """Unclamped o exp(-sigma) and the composited alpha (clamped to 0.99, 0 below 1/255), both [a, C, P]."""
-    raw = torch.exp(coeffs @ mono)
-    alpha = torch.where(raw >= ALPHA_MIN, raw.clamp_max(ALPHA_MAX), 0.0)
-    return raw, alpha
+def _alphas(coeffs: Tensor, mono: Tensor) -> Tensor:
+    """Composited alphas [a, C, P]: o exp(-sigma) clamped to 0.99, and exactly 0 below 1/255.
 
-
-def _transmittance(alpha: Tensor, t0: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Transmittance after each Gaussian [a, C, P], weights alpha * T_before [a, C, P], inclusion mask
-    and 1 - alpha [a, C, P].
-
-    ``t0`` [a, P] is the transmittance entering the chunk, 0 for pixels that have already stopped.
+    Three in-place passes over one buffer. ``threshold_`` keeps x > t, so t is the largest value of the
+    working dtype below 1/255: the kept set is exactly x >= 1/255.
     """
-    keep = 1.0 - alpha
-    prod = torch.cumprod(keep, dim=1).mul_(t0[:, None])
-    incl = prod > T_MIN
-    wgt = torch.where(incl, (alpha * prod).div_(keep), 0.0)
-    return prod, wgt, incl, keep
+    alpha = torch.exp_(coeffs @ mono)
+    torch.nn.functional.threshold_(alpha, _alpha_floor(alpha.dtype), 0.0)
+    return alpha.clamp_max_(ALPHA_MAX)
+
+
+def _alpha_floor(dtype: torch.dtype) -> float:
+    """The largest ``dtype`` value below ALPHA_MIN (as ALPHA_MIN itself rounds in that dtype)."""
+    if dtype not in _FLOORS:
+        one = torch.tensor(ALPHA_MIN, dtype=dtype)
+        _FLOORS[dtype] = float(torch.nextafter(one, torch.zeros_like(one)))
+    return _FLOORS[dtype]
+
+
+_FLOORS: dict[torch.dtype, float] = {}
+
+
+def _transmittance(alpha: Tensor, t0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Transmittance before and after each Gaussian [a, C, P] (two views of one buffer), and the
+    inclusion mask: the walk stops before a Gaussian that would bring T to 1e-4 or below.
+
+    ``t0`` [a, P] is the transmittance entering the chunk, 0 for pixels that have already stopped. T is
+    non-increasing along the list, so each pixel's included Gaussians are a prefix.
+    """
+    a, c, p = alpha.shape
+    buf = alpha.new_empty(a, c + 1, p)
+    buf[:, 0] = t0
+    torch.sub(_ONE.to(alpha), alpha, out=buf[:, 1:])
+    buf.cumprod_(1)
+    t_after = buf[:, 1:]
+    return buf[:, :-1], t_after, t_after > T_MIN
+
+
+_ONE = torch.ones(())
 
 
 def _forward_chunk(p: Tensor, centre: Tensor, valid: Tensor, t0: Tensor, mono: Tensor):
     """One compositing step for a tiles: colour+depth sums [a, 4, P], transmittance after the step [a, P]
     and which pixels stopped in it [a, P] (t0 is 0 for pixels that had stopped before)."""
     coeffs, _ = _exponent(p, centre, valid)
-    _, alpha = _alphas(coeffs, mono)
-    prod, wgt, incl, _ = _transmittance(alpha, t0)
+    alpha = _alphas(coeffs, mono)
+    t_before, t_after, incl = _transmittance(alpha, t0)
+    wgt = alpha.mul_(t_before).mul_(incl)  # alpha_i T_i where included
     f_add = p[..., 6:10].transpose(1, 2) @ wgt
-    t_new = torch.where(incl, prod, t0[:, None]).amin(1)
-    return f_add, t_new, prod[:, -1] <= T_MIN
+    last = incl.sum(1, keepdim=True)  # included prefix length per pixel
+    t_new = torch.where(last[:, 0] > 0, t_after.gather(1, (last - 1).clamp_min_(0))[:, 0], t0)
+    return f_add, t_new, t_after[:, -1] <= T_MIN
 
 
 def _backward_chunk(
@@ -111,16 +134,18 @@ def _backward_chunk(
     w_j d loss / d w_j plus g_T T_final.
     """
     coeffs, m = _exponent(p, centre, valid)
-    raw, alpha = _alphas(coeffs, mono)
-    prod, wgt, incl, keep = _transmittance(alpha, t0)
+    alpha = _alphas(coeffs, mono)
+    t_before, t_after, incl = _transmittance(alpha, t0)
+    wgt = (alpha * t_before).mul_(incl)
+    g_feat = wgt @ gf.transpose(1, 2)  # d loss / d (colour, depth) of each Gaussian
     gi = p[..., 6:10] @ gf  # [a, C, P]: d L / d w_i per pixel
-    wg = wgt * gi
+    wg = wgt.mul_(gi)
     total = suffix + wg.sum(1)
     after = wg.cumsum_(1).neg_().add_(total[:, None])  # sum over j > i
-    d_alpha = gi.mul_(prod).sub_(after).div_(keep)
-    # alpha > 0 exactly where raw >= 1/255 (the clamp keeps it at 0.99 > 0 otherwise)
-    mask = incl.logical_and_(raw >= ALPHA_MIN).logical_and_(raw < ALPHA_MAX)
-    q = torch.where(mask, d_alpha.mul_(raw), 0.0)
+    # (1 - alpha_i) d L / d alpha_i = g_i T_after_i - after_i. Clamped alphas (0.99) pass no gradient, and
+    # skipped ones (alpha = 0) none either: q = alpha d L / d alpha = -d L / d sigma vanishes there.
+    keep = torch.where(incl.logical_and_(alpha < ALPHA_MAX), (1.0 - alpha).div_(alpha), 0.0)
+    q = torch.where(keep > 0, gi.mul_(t_after).sub_(after).div_(keep), 0.0)
     # d loss / d sigma = -q; the pixel sums below are polynomial moments of q (one small matmul).
     s0, su, sv, suu, suv, svv = (q @ mono.transpose(0, 1)).unbind(-1)
     mx, my = m.unbind(-1)
@@ -133,7 +158,7 @@ def _backward_chunk(
     g_geo = torch.stack(
         [-(a * sdx + b * sdy), -(b * sdx + c * sdy), -0.5 * sdxx, -sdxy, -0.5 * sdyy, g_opacity], -1
     )
-    rows = torch.cat([g_geo, wgt @ gf.transpose(1, 2)], dim=-1) * valid[..., None]
+    rows = torch.cat([g_geo, g_feat], dim=-1) * valid[..., None]
     return rows, total
 
 
