@@ -49,46 +49,98 @@ def sh_degree_from_coeffs(k: int) -> int:
     return degree
 
 
+# Every basis function as a polynomial in the direction's x, y, z: terms (coefficient, (i, j, k)) of
+# coefficient * x^i y^j z^k, expanded from the usual product forms (degree 2, m = 0 is C (2zz - xx - yy)).
+# Band l only uses monomials of degree <= l. Evaluating all monomials first and the basis as one matrix
+# product needs a dozen tensor ops instead of about seventy.
+_TERMS: tuple[tuple[tuple[float, tuple[int, int, int]], ...], ...] = (
+    ((C0, (0, 0, 0)),),
+    ((-C1, (0, 1, 0)),),
+    ((C1, (0, 0, 1)),),
+    ((-C1, (1, 0, 0)),),
+    ((C2[0], (1, 1, 0)),),
+    ((C2[1], (0, 1, 1)),),
+    ((2.0 * C2[2], (0, 0, 2)), (-C2[2], (2, 0, 0)), (-C2[2], (0, 2, 0))),
+    ((C2[3], (1, 0, 1)),),
+    ((C2[4], (2, 0, 0)), (-C2[4], (0, 2, 0))),
+    ((3.0 * C3[0], (2, 1, 0)), (-C3[0], (0, 3, 0))),
+    ((C3[1], (1, 1, 1)),),
+    ((4.0 * C3[2], (0, 1, 2)), (-C3[2], (2, 1, 0)), (-C3[2], (0, 3, 0))),
+    ((2.0 * C3[3], (0, 0, 3)), (-3.0 * C3[3], (2, 0, 1)), (-3.0 * C3[3], (0, 2, 1))),
+    ((4.0 * C3[4], (1, 0, 2)), (-C3[4], (3, 0, 0)), (-C3[4], (1, 2, 0))),
+    ((C3[5], (2, 0, 1)), (-C3[5], (0, 2, 1))),
+    ((C3[6], (3, 0, 0)), (-3.0 * C3[6], (1, 2, 0))),
+    ((C4[0], (3, 1, 0)), (-C4[0], (1, 3, 0))),
+    ((3.0 * C4[1], (2, 1, 1)), (-C4[1], (0, 3, 1))),
+    ((7.0 * C4[2], (1, 1, 2)), (-C4[2], (1, 1, 0))),
+    ((7.0 * C4[3], (0, 1, 3)), (-3.0 * C4[3], (0, 1, 1))),
+    ((35.0 * C4[4], (0, 0, 4)), (-30.0 * C4[4], (0, 0, 2)), (3.0 * C4[4], (0, 0, 0))),
+    ((7.0 * C4[5], (1, 0, 3)), (-3.0 * C4[5], (1, 0, 1))),
+    ((7.0 * C4[6], (2, 0, 2)), (-C4[6], (2, 0, 0)), (-7.0 * C4[6], (0, 2, 2)), (C4[6], (0, 2, 0))),
+    ((C4[7], (3, 0, 1)), (-3.0 * C4[7], (1, 2, 1))),
+    ((C4[8], (4, 0, 0)), (-6.0 * C4[8], (2, 2, 0)), (C4[8], (0, 4, 0))),
+)
+
+
+def _monomial_exponents(degree: int) -> list[tuple[int, int, int]]:
+    """Exponents (i, j, k) of all monomials x^i y^j z^k of total degree <= ``degree``, by degree."""
+    return [
+        (i, j, d - i - j) for d in range(degree + 1) for i in range(d, -1, -1) for j in range(d - i, -1, -1)
+    ]
+
+
+_PLANS: dict[tuple[int, torch.device], list[tuple[Tensor, Tensor]]] = {}
+_MATRICES: dict[tuple[int, torch.dtype, torch.device], Tensor] = {}
+
+
+def num_monomials(degree: int) -> int:
+    """Number of monomials in x, y, z of total degree <= ``degree``."""
+    return (degree + 1) * (degree + 2) * (degree + 3) // 6
+
+
+def _monomial_plan(degree: int, device: torch.device) -> list[tuple[Tensor, Tensor]]:
+    """For each degree d in 2..``degree``: the monomials of degree exactly d, each as (position of a monomial
+    of degree d - 1 among those of degree exactly d - 1) times (x, y or z: 0, 1 or 2)."""
+    key = (degree, device)
+    if key not in _PLANS:
+        plan = []
+        for d in range(2, degree + 1):
+            below = _monomial_exponents(d - 1)[num_monomials(d - 2) :]
+            parents, axes = [], []
+            for e in _monomial_exponents(d)[num_monomials(d - 1) :]:
+                axis = next(q for q in range(3) if e[q] > 0)
+                parents.append(below.index(tuple(p - (q == axis) for q, p in enumerate(e))))
+                axes.append(axis)
+            plan.append((torch.tensor(parents, device=device), torch.tensor(axes, device=device)))
+        _PLANS[key] = plan
+    return _PLANS[key]
+
+
+def _basis_matrix(degree: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """[monomials, K] matrix taking the monomial values to the basis values."""
+    key = (degree, dtype, device)
+    if key not in _MATRICES:
+        index = {e: n for n, e in enumerate(_monomial_exponents(degree))}
+        mat = torch.zeros(len(index), num_sh_coeffs(degree), dtype=torch.float64)
+        for k, terms in enumerate(_TERMS[: num_sh_coeffs(degree)]):
+            for coefficient, exponent in terms:
+                mat[index[exponent], k] += coefficient
+        _MATRICES[key] = mat.to(dtype=dtype, device=device)
+    return _MATRICES[key]
+
+
 def sh_basis(dirs: Tensor, degree: int) -> Tensor:
     """Basis values [..., (degree+1)^2] at unit directions [..., 3]."""
     if not 0 <= degree <= MAX_SH_DEGREE:
         raise ValueError(f"SH degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, C0)]
-    if degree >= 1:
-        out += [-C1 * y, C1 * z, -C1 * x]
-    if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        out += [
-            C2[0] * xy,
-            C2[1] * yz,
-            C2[2] * (2.0 * zz - xx - yy),
-            C2[3] * xz,
-            C2[4] * (xx - yy),
-        ]
-    if degree >= 3:
-        out += [
-            C3[0] * y * (3.0 * xx - yy),
-            C3[1] * xy * z,
-            C3[2] * y * (4.0 * zz - xx - yy),
-            C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
-            C3[4] * x * (4.0 * zz - xx - yy),
-            C3[5] * z * (xx - yy),
-            C3[6] * x * (xx - 3.0 * yy),
-        ]
-    if degree >= 4:
-        out += [
-            C4[0] * xy * (xx - yy),
-            C4[1] * yz * (3.0 * xx - yy),
-            C4[2] * xy * (7.0 * zz - 1.0),
-            C4[3] * yz * (7.0 * zz - 3.0),
-            C4[4] * (zz * (35.0 * zz - 30.0) + 3.0),
-            C4[5] * xz * (7.0 * zz - 3.0),
-            C4[6] * (xx - yy) * (7.0 * zz - 1.0),
-            C4[7] * xz * (xx - 3.0 * yy),
-            C4[8] * (xx * (xx - 3.0 * yy) - yy * (3.0 * xx - yy)),
-        ]
-    return torch.stack(out, dim=-1)
+    # Monomials as rows [monomials, n] (each row contiguous, gathered by index_select), then one matrix
+    # product whose transposed operand gives the basis back as [n, K] without a copy.
+    xyz = dirs.reshape(-1, 3).t()
+    levels = [torch.ones_like(xyz[:1]), xyz][: degree + 1]  # monomials of degree exactly 0, 1, ...
+    for parents, axes in _monomial_plan(degree, dirs.device):
+        levels.append(levels[-1].index_select(0, parents) * xyz.index_select(0, axes))
+    basis = torch.cat(levels, 0).t() @ _basis_matrix(degree, dirs.dtype, dirs.device)
+    return basis.reshape(*dirs.shape[:-1], basis.shape[-1])
 
 
 def eval_sh(coeffs: Tensor, dirs: Tensor, degree: int | None = None) -> Tensor:
@@ -103,7 +155,7 @@ def eval_sh(coeffs: Tensor, dirs: Tensor, degree: int | None = None) -> Tensor:
         return (C0 * coeffs[..., 0, :] + 0.5).clamp_min(0.0)
     basis = sh_basis(dirs, degree)  # [..., K']
     k = num_sh_coeffs(degree)
-    rgb = (basis[..., None] * coeffs[..., :k, :]).sum(-2)
+    rgb = (basis.unsqueeze(-2) @ coeffs[..., :k, :]).squeeze(-2)  # batched [1, K'] @ [K', 3]
     return (rgb + 0.5).clamp_min(0.0)
 
 

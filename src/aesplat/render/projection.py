@@ -80,9 +80,9 @@ def _ewa(
     multiply-and-sum: batched 3x3 matmuls are slow on the CPU.
     """
     rot_all, trans_all, k_all = cameras
-    r = rot_all[cam]  # [M, 3, 3]
-    mean_c = (r * means[gid][:, None, :]).sum(-1) + trans_all[cam]  # [M, 3]
-    k = k_all[cam]
+    r = rot_all.index_select(0, cam)  # [M, 3, 3]
+    mean_c = (r * means.index_select(0, gid)[:, None, :]).sum(-1) + trans_all.index_select(0, cam)  # [M, 3]
+    k = k_all.index_select(0, cam)
     fx, fy = k[:, 0, 0] * width, k[:, 1, 1] * height
     cx, cy = k[:, 0, 2] * width, k[:, 1, 2] * height
     x, y, z = mean_c.unbind(-1)
@@ -152,13 +152,15 @@ def project_gaussians(
         flat_cov = covariances.reshape(b * n, 3, 3)
 
         def shape(idx: Tensor, jr: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-            x = (jr[:, :, :, None] * flat_cov[idx][:, None]).sum(2)  # J R Sigma [M, 2, 3]
+            x = (jr[:, :, :, None] * flat_cov.index_select(0, idx)[:, None]).sum(2)  # J R Sigma [M, 2, 3]
             return (x[:, 0] * jr[:, 0]).sum(-1), (x[:, 0] * jr[:, 1]).sum(-1), (x[:, 1] * jr[:, 1]).sum(-1)
     else:
         scales, quats = gaussians.scales.reshape(b * n, 3), gaussians.quats.reshape(b * n, 4)
 
         def shape(idx: Tensor, jr: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-            rs = quat_to_matrix(quats[idx]) * scales[idx][:, None, :]  # R_q S [M, 3, 3]
+            rs = (
+                quat_to_matrix(quats.index_select(0, idx)) * scales.index_select(0, idx)[:, None, :]
+            )  # R_q S [M, 3, 3]
             t = (jr[:, :, :, None] * rs[:, None]).sum(2)  # J R R_q S [M, 2, 3]; 2D cov = t t^T
             return (t[:, 0] * t[:, 0]).sum(-1), (t[:, 0] * t[:, 1]).sum(-1), (t[:, 1] * t[:, 1]).sum(-1)
 
@@ -168,7 +170,7 @@ def project_gaussians(
     with torch.no_grad():
         m2, (ca, cb, cc), _ = ewa
         det = ca * cc - cb * cb
-        opac = gaussians.opacities.reshape(b * n)[gid]
+        opac = gaussians.opacities.reshape(b * n).index_select(0, gid)
         ok = torch.isfinite(ca) & torch.isfinite(cb) & torch.isfinite(cc) & torch.isfinite(m2).all(-1)
         all_finite = bool(ok.all())
         ok &= det > 0
@@ -179,9 +181,10 @@ def project_gaussians(
         sel = visible.nonzero(as_tuple=True)[0]
     footprint = int(cam.numel() - sel.numel())
 
-    cam_v, gid_v = cam[sel], gid[sel]
+    cam_v, gid_v = cam.index_select(0, sel), gid.index_select(0, sel)
     if all_finite:
-        means2d, (ca, cb, cc), depth = ewa[0][sel], tuple(t[sel] for t in ewa[1]), ewa[2][sel]
+        means2d, depth = ewa[0].index_select(0, sel), ewa[2].index_select(0, sel)
+        ca, cb, cc = (t.index_select(0, sel) for t in ewa[1])
     else:
         means2d, (ca, cb, cc), depth = _ewa(flat_means, shape, cameras, cam_v, gid_v, height, width, eps2d)
     det = ca * cc - cb * cb  # > 0 for every survivor
@@ -189,14 +192,14 @@ def project_gaussians(
 
     # Colours: only the SH bands in use; degree 0 never touches directions.
     ncoef = num_sh_coeffs(sh_degree)
-    sh = gaussians.sh.flatten(0, 1)[:, :ncoef][gid_v]  # [Mv, K', 3]
+    sh = gaussians.sh.flatten(0, 1)[:, :ncoef].index_select(0, gid_v)  # [Mv, K', 3]
     if colors is not None:
-        colors = colors.reshape(b * n, 3)[gid_v]
+        colors = colors.reshape(b * n, 3).index_select(0, gid_v)
     elif sh_degree == 0:
         colors = eval_sh(sh, sh.new_zeros(sh.shape[0], 3), 0)
     else:
-        campos = extrinsics[..., :3, 3].reshape(b * v, 3)[cam_v]
-        d = flat_means[gid_v] - campos
+        campos = extrinsics[..., :3, 3].reshape(b * v, 3).index_select(0, cam_v)
+        d = flat_means.index_select(0, gid_v) - campos
         norm2 = (d * d).sum(-1, keepdim=True)
         dirs = d * torch.rsqrt(norm2.clamp_min(torch.finfo(dtype).tiny))  # z > near, so norm2 > 0
         colors = eval_sh(sh, dirs, sh_degree)
@@ -206,9 +209,9 @@ def project_gaussians(
         gaussian=gid_v,
         means2d=means2d,
         conics=conics,
-        radii=torch.stack([rad_x[sel], rad_y[sel]], dim=-1),
+        radii=torch.stack([rad_x, rad_y], dim=-1).index_select(0, sel),
         depths=depth,
-        opacities=gaussians.opacities.reshape(b * n)[gid_v],
+        opacities=gaussians.opacities.reshape(b * n).index_select(0, gid_v),
         colors=colors,
     )
     return projected, CullCounts(total, transparent, depth_culled, footprint)
@@ -217,11 +220,14 @@ def project_gaussians(
 def active_sh_degree(sh: Tensor, requested: int, tol: float = 0.0) -> int:
     """Highest SH band (<= ``requested``) whose coefficients carry energy above ``tol`` (max |c|).
 
-    Bands above it add exactly nothing to the colour, so they need not be evaluated.
+    Bands above it add exactly nothing to the colour, so they need not be evaluated. Bands are checked from
+    the top down with one min/max reduction each, so a scene that uses its top band costs one pass over it.
     """
-    degree = 0
-    for band in range(1, requested + 1):
+    for band in range(requested, 0, -1):
         lo, hi = num_sh_coeffs(band - 1), num_sh_coeffs(band)
-        if bool((sh[..., lo:hi, :].abs() > tol).any()):
-            degree = band
-    return degree
+        if sh[..., lo:hi, :].numel() == 0:
+            continue
+        low, high = torch.aminmax(sh[..., lo:hi, :])
+        if max(-float(low), float(high)) > tol or low.isnan() or high.isnan():
+            return band
+    return 0
