@@ -43,6 +43,11 @@ DEMO_CKPT := $(DEMO_RUN)/checkpoints/last.ckpt
 DEMO_TIMES := $(DEMO_DIR)/timings.csv
 DEMO_ARGS := -c $(DEMO_CONFIG) --data.root $(DEMO_DIR)/shards --data.image_size $(DEMO_SIZE)
 DEMO_FIT_ARGS ?=  # extra `aesplat fit` overrides, e.g. DEMO_FIT_ARGS="--trainer.max_steps 200"
+# DEMO_DIAGNOSE=1 (default) also trains the same model with ground-truth poses in place of the camera head's
+# (scripts/ground_truth_cameras.py; about two more minutes) so the report can say what the pose head costs.
+DEMO_DIAGNOSE ?= 1
+DEMO_GT := $(DEMO_DIR)/gt_poses
+GT_POSES := scripts/ground_truth_cameras.py
 AESPLAT := $(VENV)/bin/aesplat
 # Lightning's CSV logger writes metrics.csv (the loss curve: every step) and config.yaml into the run directory.
 DEMO_LOG := --trainer.logger+=CSVLogger --trainer.logger.save_dir $(DEMO_RUN) --trainer.logger.name "" \
@@ -51,7 +56,7 @@ DEMO_LOG := --trainer.logger+=CSVLogger --trainer.logger.save_dir $(DEMO_RUN) --
 timed = echo "$(1),$$(( $$(date +%s) - t0 ))" >> $(DEMO_TIMES)
 
 demo: $(STAMP)
-	rm -rf $(DEMO_RUN) $(DEMO_DIR)/initial $(DEMO_DIR)/bench
+	rm -rf $(DEMO_RUN) $(DEMO_DIR)/initial $(DEMO_DIR)/bench $(DEMO_GT)
 	mkdir -p $(DEMO_DIR) && echo "stage,seconds" > $(DEMO_TIMES)
 	t0=$$(date +%s); $(PY) data_prep/synthetic.py --out $(DEMO_DIR)/src && $(call timed,synthetic scenes)
 	t0=$$(date +%s); $(PY) data_prep/to_shards.py --src $(DEMO_DIR)/src --out $(DEMO_DIR)/shards \
@@ -64,8 +69,18 @@ demo: $(STAMP)
 		--trainer.logger false --ckpt_path $(DEMO_CKPT) && $(call timed,aesplat test (trained))
 	t0=$$(date +%s); $(AESPLAT) bench --ckpt $(DEMO_CKPT) --out $(DEMO_DIR)/bench --scenes 2 --repeats 3 \
 		&& $(call timed,aesplat bench)
+ifeq ($(DEMO_DIAGNOSE),1)
+	t0=$$(date +%s); $(PY) $(GT_POSES) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_GT)/initial \
+		--trainer.logger false && $(call timed,diagnostic: test with ground-truth poses (untrained))
+	t0=$$(date +%s); $(PY) $(GT_POSES) fit $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_GT)/run \
+		--trainer.logger false $(DEMO_FIT_ARGS) && $(call timed,diagnostic: fit with ground-truth poses)
+	t0=$$(date +%s); $(PY) $(GT_POSES) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_GT)/run \
+		--trainer.logger false --ckpt_path $(DEMO_GT)/run/checkpoints/last.ckpt \
+		&& $(call timed,diagnostic: test with ground-truth poses (trained))
+endif
 	$(PY) scripts/demo_report.py --run-dir $(DEMO_RUN) --initial $(DEMO_DIR)/initial/test \
-		--bench $(DEMO_DIR)/bench --timings $(DEMO_TIMES) --out $(DEMO_DIR)
+		--bench $(DEMO_DIR)/bench --timings $(DEMO_TIMES) --out $(DEMO_DIR) \
+		$(if $(filter 1,$(DEMO_DIAGNOSE)),--gt-initial $(DEMO_GT)/initial/test --gt-trained $(DEMO_GT)/run/test)
 
 # `make bench [CKPT=...] [BENCH_OUT=...]`: accuracy versus time of a trained checkpoint (default: the demo's).
 CKPT ?= $(DEMO_CKPT)

@@ -232,6 +232,40 @@ def bucket_table(initial: dict, trained: dict) -> list[str]:
     return lines
 
 
+def ground_truth_pose_section(initial: dict, trained: dict, gt_initial: Path | None, gt_trained: Path | None):
+    """The diagnostic run with ground-truth poses next to the method's run (empty when it did not run)."""
+    if gt_initial is None or gt_trained is None:
+        return []
+    if not ((gt_initial / "summary.json").is_file() and (gt_trained / "summary.json").is_file()):
+        return ["(The ground-truth-pose diagnostic did not finish: no summary.json under "
+                f"`{gt_initial}` and `{gt_trained}`.)", ""]  # fmt: skip
+    gt0, gt1 = read_summary(gt_initial)["metrics"], read_summary(gt_trained)["metrics"]
+    rows = [("predicted poses (the method)", initial["metrics"], trained["metrics"]),
+            ("ground-truth poses (diagnostic)", gt0, gt1)]  # fmt: skip
+    lines = [
+        "## Diagnostic: the same training with ground-truth poses",
+        "",
+        "`scripts/ground_truth_cameras.py` trains and tests the same model with the same settings, but with "
+        "the data set's relative poses in place of the camera head's. This is not the method (AESplat never "
+        "sees a ground-truth pose in training); the gap between the two rows is what learning the poses costs "
+        "here.",
+        "",
+        "| run | untrained PSNR | trained PSNR | gain | trained rotation error (°) "
+        "| trained translation error (°) |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for name, before, after in rows:
+        lines.append(
+            f"| {name} | {before['psnr']:.2f} | {after['psnr']:.2f} | {after['psnr'] - before['psnr']:+.2f} | "
+            f"{fmt(after.get('rot_err_deg'), '{:.2f}')} | {fmt(after.get('trans_err_deg'), '{:.1f}')} |"
+        )
+    method_gain = trained["metrics"]["psnr"] - initial["metrics"]["psnr"]
+    if gt1["psnr"] - gt0["psnr"] > method_gain + 2.0:
+        lines += ["", "With the poses given, the depth and Gaussian heads learn far more in the same steps: "
+                  "the pose head is what limits this run."]  # fmt: skip
+    return lines + [""]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run-dir", type=Path, required=True, help="the `aesplat fit` run directory")
@@ -242,6 +276,10 @@ def main(argv: list[str] | None = None) -> int:
                         "(default: RUN_DIR/test)")  # fmt: skip
     parser.add_argument("--bench", type=Path, default=None, help="`aesplat bench` output folder, if it ran")
     parser.add_argument("--timings", type=Path, default=None, help="CSV stage,seconds written by `make demo`")
+    parser.add_argument("--gt-initial", type=Path, default=None, help="`scripts/ground_truth_cameras.py test` "
+                        "output of the untrained model (diagnostic, optional)")  # fmt: skip
+    parser.add_argument("--gt-trained", type=Path, default=None, help="the same for the model trained with "
+                        "ground-truth poses")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"), help="report folder")
     parser.add_argument("--scenes", type=int, default=4, help="test scenes in the render grid")
     args = parser.parse_args(argv)
@@ -297,6 +335,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         *bucket_table(initial, trained),
         "",
+        *ground_truth_pose_section(initial, trained, args.gt_initial, args.gt_trained),
         "## Setup",
         "",
         f"- model: `{net.get('size')}` ({params / 1e6:.2f} M parameters), "

@@ -113,11 +113,12 @@ _EXPECTED_WARNINGS = (
 )
 
 
-def run_lightning(argv: Sequence[str]) -> None:
-    """Run fit / validate / test through the LightningCLI."""
+def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None:
+    """Run fit / validate / test through the LightningCLI (``module_class``: a subclass of AESplatModule)."""
     for pattern in _EXPECTED_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
-    cli_class, module_class, data_class = _lightning_cli()
+    cli_class, default_module, data_class = _lightning_cli()
+    module_class = module_class or default_module
     cli_class(
         module_class,
         data_class,

@@ -1,0 +1,46 @@
+"""scripts/demo_report.py: the ground-truth-pose diagnostic section of the demo report."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "demo_report.py"
+
+
+def _report_module():
+    spec = importlib.util.spec_from_file_location("demo_report", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _summary(folder: Path, psnr: float, rot: float, trans: float) -> dict:
+    folder.mkdir(parents=True)
+    summary = {"num_scenes": 3, "metrics": {"psnr": psnr, "ssim": 0.5, "lpips": None, "rot_err_deg": rot,
+                                            "trans_err_deg": trans}}  # fmt: skip
+    (folder / "summary.json").write_text(json.dumps(summary))
+    return summary
+
+
+def test_ground_truth_pose_section_compares_both_runs(tmp_path):
+    report = _report_module()
+    initial, trained = _summary(tmp_path / "a", 16.0, 8.0, 70.0), _summary(tmp_path / "b", 17.0, 8.0, 15.0)
+    _summary(tmp_path / "gt0", 15.0, 0.0, 0.0)
+    _summary(tmp_path / "gt1", 21.5, 0.0, 0.0)
+    lines = report.ground_truth_pose_section(initial, trained, tmp_path / "gt0", tmp_path / "gt1")
+    text = "\n".join(lines)
+    assert "| predicted poses (the method) | 16.00 | 17.00 | +1.00 | 8.00 | 15.0 |" in text
+    assert "| ground-truth poses (diagnostic) | 15.00 | 21.50 | +6.50 | 0.00 | 0.0 |" in text
+    assert "the pose head is what limits this run" in text
+
+
+def test_ground_truth_pose_section_is_empty_or_says_what_is_missing(tmp_path):
+    report = _report_module()
+    initial, trained = _summary(tmp_path / "a", 16.0, 8.0, 70.0), _summary(tmp_path / "b", 19.0, 2.0, 5.0)
+    assert report.ground_truth_pose_section(initial, trained, None, None) == []
+    missing = report.ground_truth_pose_section(initial, trained, tmp_path / "x", tmp_path / "y")
+    assert "did not finish" in missing[0]
+    _summary(tmp_path / "gt0", 15.0, 0.0, 0.0)
+    _summary(tmp_path / "gt1", 17.5, 0.0, 0.0)  # a gain no larger than the method's: no verdict on the poses
+    lines = report.ground_truth_pose_section(initial, trained, tmp_path / "gt0", tmp_path / "gt1")
+    assert not any("limits this run" in line for line in lines)
