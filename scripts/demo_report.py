@@ -232,6 +232,23 @@ def bucket_table(initial: dict, trained: dict) -> list[str]:
     return lines
 
 
+def context_baselines(pairs: list[tuple[torch.Tensor, torch.Tensor]]) -> dict[str, float]:
+    """PSNR of renders that need no model, averaged like `aesplat test` (over each scene's targets, then over
+    scenes): the mean of the context views, and the better of the context views for each scene.
+
+    pairs: (context images [1, Vc, 3, H, W], target images [1, Vt, 3, H, W]) per scene.
+    """
+    mean_view, best_view = [], []
+    for context, target in pairs:
+        tgt = target[0]
+        mean_view.append(psnr(context[0].mean(0, keepdim=True).expand_as(tgt), tgt).mean().item())
+        best_view.append(max(psnr(view[None].expand_as(tgt), tgt).mean().item() for view in context[0]))
+    return {
+        "mean of the context views": sum(mean_view) / len(mean_view),
+        "the better context view of each scene": sum(best_view) / len(best_view),
+    }
+
+
 def ground_truth_pose_section(initial: dict, trained: dict, gt_initial: Path | None, gt_trained: Path | None):
     """The diagnostic run with ground-truth poses next to the method's run (empty when it did not run)."""
     if gt_initial is None or gt_trained is None:
@@ -305,6 +322,9 @@ def main(argv: list[str] | None = None) -> int:
     have_curve = loss_curve(metrics, initial["metrics"]["psnr"], trained["metrics"]["psnr"],
                             args.out / "loss_curve.png")  # fmt: skip
 
+    all_scenes = evaluation_scenes(loaded, None, None, 1_000_000, device)
+    baselines = context_baselines([(scene.context.images, scene.target.images) for scene in all_scenes])
+
     gain = trained["metrics"]["psnr"] - initial["metrics"]["psnr"]
     train_rows = [r for r in metrics if "train/loss" in r]
     steps = int(max((r["step"] for r in train_rows), default=-1)) + 1
@@ -334,6 +354,12 @@ def main(argv: list[str] | None = None) -> int:
         + (f"LPIPS: {trained['unavailable']['lpips']}." if trained.get("unavailable", {}).get("lpips") else ""),
         "",
         *bucket_table(initial, trained),
+        "",
+        "Copying context pixels needs no model; as a yardstick, such copies score on the same test scenes:",
+        "",
+        "| copy, no model | PSNR (dB) |",
+        "| --- | ---: |",
+        *[f"| {name} | {value:.2f} |" for name, value in baselines.items()],
         "",
         *ground_truth_pose_section(initial, trained, args.gt_initial, args.gt_trained),
         "## Setup",
