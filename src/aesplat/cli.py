@@ -54,8 +54,8 @@ def _lightning_cli():
             return commands
 
         def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-            # Best by val/psnr (written after validation) and last (every N steps: keep N a multiple of
-            # data.train_batches_per_epoch so every resume starts at an epoch boundary and continues exactly).
+            # Best by val/psnr (written after validation) and last (every N steps; a resume from any step,
+            # mid-epoch included, continues exactly: see aesplat.data.stream).
             parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
             parser.add_lightning_class_args(ModelCheckpoint, "last_checkpoint")
             parser.set_defaults(

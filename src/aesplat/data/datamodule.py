@@ -2,7 +2,8 @@
 
 Plain constructor arguments, so LightningCLI builds it from YAML. Rank and world size come from the trainer in
 ``setup`` (or ``set_distributed`` in tests), never from environment variables. The training engineer calls
-``set_global_step(step)`` every step; the value sits in shared memory, so every worker's curriculum follows it.
+``set_global_step(step)`` every step; the value sits in shared memory, where every worker's stream reads it
+when an epoch starts (see ``stream.TrainStream``: a step inside an epoch resumes that epoch exactly).
 ``state_dict`` / ``load_state_dict`` carry the step (and seed) through checkpoints.
 """
 
@@ -115,7 +116,7 @@ class DataModule(L.LightningDataModule):
     # ------------------------------------------------------------------------------------------- curriculum
 
     def set_global_step(self, step: int) -> None:
-        """Tell every (already running) worker the current global step; the curriculum follows it."""
+        """Tell every (already running) worker the current global step, read when an epoch's stream starts."""
         self._step[0] = int(step)
 
     @property

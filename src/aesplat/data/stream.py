@@ -2,8 +2,11 @@
 
 - Training: every (rank, worker) resamples its shards forever through a shuffle buffer and yields exactly its
   share of ``batches_per_rank`` batches, so every rank sees the same number of batches (no DDP hang).
-  Samples whose context gap the curriculum does not allow at the current global step (read from shared
-  memory, so every worker honours it) are passed over.
+  Epochs are blocks of ``batches_per_rank`` global steps. Batch j of the epoch that starts at step e is drawn
+  for step e + j: the curriculum judges its samples at that step, and the random streams are seeded with e.
+  So the data depend only on (seed, rank, e, j), not on timing or prefetching, and an iterator started in
+  the middle of an epoch (a run resumed from a mid-epoch checkpoint) replays the epoch's first batches
+  without yielding them and continues exactly where the interrupted run stopped.
 - Evaluation: deterministic order, every sample exactly once across all ranks and workers.
 - A corrupt sample or shard is skipped, counted in a shared counter table and logged, never fatal.
 
@@ -231,7 +234,8 @@ class _ShardStream(IterableDataset):
 class TrainStream(_ShardStream):
     """Infinite resampled training stream cut to ``batches_per_rank`` batches per rank (per epoch).
 
-    step: shared int64 [1] tensor holding the global step (the curriculum reads it on every sample).
+    step: shared int64 [1] tensor holding the global step; read when an epoch's iterator starts. Epochs are
+    blocks of ``batches_per_rank`` steps, so a step inside a block means "resume this epoch here".
     """
 
     def __init__(self, shards: list[str], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor,
@@ -276,46 +280,53 @@ class TrainStream(_ShardStream):
 
     def __iter__(self) -> Iterator[BatchedExample]:
         wid, nw = _worker()
-        todo = self.batches_per_rank // nw + (wid < self.batches_per_rank % nw)
-        shards = self.worker_shards(wid, nw)
-        rng = np.random.default_rng([self.seed, self.rank, wid, int(self.step[0])])
+        step = int(self.step[0])
+        done = step % self.batches_per_rank  # batches of this epoch already trained on (resume)
+        start = step - done
+        # Batch j of the epoch comes from stream j % nw. The DataLoader asks worker 0 first, so when `done`
+        # batches are already consumed, worker w plays stream (w + done) % nw: the next batch it is asked for is
+        # then the next one of the epoch.
+        role = (wid + done) % nw
+        shards = self.worker_shards(role, nw)
+        rng = np.random.default_rng([self.seed, self.rank, role, start])
         raw_stream = self._raw_forever(shards, rng)
         batch: list[dict] = []
         barren_passes, accepted, gaps_seen = 0, 0, set()
-        while todo > 0:
-            item = next(raw_stream)
-            if item is None:  # end of a pass: two in a row without one usable sample cannot recover
-                barren_passes = 0 if accepted else barren_passes + 1
-                accepted = 0
-                if barren_passes >= 2:
-                    step = int(self.step[0])
-                    raise RuntimeError(
-                        f"no training sample has a context gap allowed by the curriculum at step {step} "
-                        f"({self.curriculum.allowed(step)}) or decodes; gaps seen: {sorted(gaps_seen)[:20]}. "
-                        "Convert with a matching --min-gap/--max-gap or change the curriculum ranges."
-                    )
-                continue
-            shard, key, raw = item
-            try:  # filter on the metadata before decoding any image
-                meta = json.loads(raw["meta.json"])
-                gap, targets = int(meta["gap"]), len(meta["target"])
-            except Exception:  # noqa: BLE001
-                gap = targets = None  # decode_sample counts it as corrupt
-            if gap is not None and not self.curriculum.accepts(gap, int(self.step[0])):
-                self._count("curriculum_skipped")
-                gaps_seen.add(gap)
-                continue
-            if targets is not None and targets < (self.cfg.num_target_views or 1):
-                self._count("too_few_targets")
-                continue
-            sample = self._decode(shard, key, raw, rng)
-            if sample is None:
-                continue
-            accepted += 1
-            batch.append(sample)
-            if len(batch) == self.cfg.batch_size:
+        for j in range(role, self.batches_per_rank, nw):  # this stream's batches of the epoch
+            at = start + j  # the global step batch j is trained at
+            while len(batch) < self.cfg.batch_size:
+                item = next(raw_stream)
+                if item is None:  # end of a pass: two in a row without one usable sample cannot recover
+                    barren_passes = 0 if accepted else barren_passes + 1
+                    accepted = 0
+                    if barren_passes >= 2:
+                        raise RuntimeError(
+                            f"no training sample has a context gap allowed by the curriculum at step {at} "
+                            f"({self.curriculum.allowed(at)}) or decodes; gaps seen: {sorted(gaps_seen)[:20]}. "
+                            "Convert with a matching --min-gap/--max-gap or change the curriculum ranges."
+                        )
+                    continue
+                shard, key, raw = item
+                try:  # filter on the metadata before decoding any image
+                    meta = json.loads(raw["meta.json"])
+                    gap, targets = int(meta["gap"]), len(meta["target"])
+                except Exception:  # noqa: BLE001
+                    gap = targets = None  # decode_sample counts it as corrupt
+                if gap is not None and not self.curriculum.accepts(gap, at):
+                    self._count("curriculum_skipped")
+                    gaps_seen.add(gap)
+                    continue
+                if targets is not None and targets < (self.cfg.num_target_views or 1):
+                    self._count("too_few_targets")
+                    continue
+                sample = self._decode(shard, key, raw, rng)  # decoded even when replayed: it draws from rng
+                if sample is None:
+                    continue
+                accepted += 1
+                batch.append(sample)
+            if j >= done:
                 yield collate(batch, self.cfg)
-                batch, todo = [], todo - 1
+            batch = []
 
 
 class EvalStream(_ShardStream):
