@@ -82,15 +82,15 @@ def _alphas(coeffs: Tensor, mono: Tensor) -> Tensor:
     return alpha.clamp_max_(ALPHA_MAX)
 
 
+_FLOORS: dict[torch.dtype, float] = {}
+
+
 def _alpha_floor(dtype: torch.dtype) -> float:
     """The largest ``dtype`` value below ALPHA_MIN (as ALPHA_MIN itself rounds in that dtype)."""
     if dtype not in _FLOORS:
         one = torch.tensor(ALPHA_MIN, dtype=dtype)
         _FLOORS[dtype] = float(torch.nextafter(one, torch.zeros_like(one)))
     return _FLOORS[dtype]
-
-
-_FLOORS: dict[torch.dtype, float] = {}
 
 
 def _transmittance(alpha: Tensor, t0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -100,16 +100,16 @@ def _transmittance(alpha: Tensor, t0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     ``t0`` [a, P] is the transmittance entering the chunk, 0 for pixels that have already stopped. T is
     non-increasing along the list, so each pixel's included Gaussians are a prefix.
     """
-    a, c, p = alpha.shape
-    buf = alpha.new_empty(a, c + 1, p)
-    buf[:, 0] = t0
-    torch.sub(_ONE.to(alpha), alpha, out=buf[:, 1:])
-    buf.cumprod_(1)
+    if torch.compiler.is_compiling():  # inductor fuses this form; the in-place one below is for eager
+        buf = torch.cumprod(torch.cat([t0[:, None], 1.0 - alpha], dim=1), dim=1)
+    else:
+        a, c, p = alpha.shape
+        buf = alpha.new_empty(a, c + 1, p)
+        buf[:, 0] = t0
+        torch.sub(alpha.new_ones(()), alpha, out=buf[:, 1:])  # 1 - alpha, written in place
+        buf.cumprod_(1)
     t_after = buf[:, 1:]
     return buf[:, :-1], t_after, t_after > T_MIN
-
-
-_ONE = torch.ones(())
 
 
 def _forward_chunk(p: Tensor, centre: Tensor, valid: Tensor, t0: Tensor, mono: Tensor):
@@ -120,8 +120,11 @@ def _forward_chunk(p: Tensor, centre: Tensor, valid: Tensor, t0: Tensor, mono: T
     t_before, t_after, incl = _transmittance(alpha, t0)
     wgt = alpha.mul_(t_before).mul_(incl)  # alpha_i T_i where included
     f_add = p[..., 6:10].transpose(1, 2) @ wgt
-    last = incl.sum(1, keepdim=True)  # included prefix length per pixel
-    t_new = torch.where(last[:, 0] > 0, t_after.gather(1, (last - 1).clamp_min_(0))[:, 0], t0)
+    if torch.compiler.is_compiling():
+        t_new = torch.where(incl, t_after, t0[:, None]).amin(1)
+    else:  # the last included T, found from the prefix length: no pass over the whole block
+        last = incl.sum(1, keepdim=True)
+        t_new = torch.where(last[:, 0] > 0, t_after.gather(1, (last - 1).clamp_min_(0))[:, 0], t0)
     return f_add, t_new, t_after[:, -1] <= T_MIN
 
 
