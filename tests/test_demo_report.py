@@ -1,20 +1,16 @@
 """scripts/demo_report.py: the ground-truth-pose diagnostic section of the demo report."""
 
-import importlib.util
 import json
 import math
 from pathlib import Path
 
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "demo_report.py"
+from .script_loader import load_script
 
 
 def _report_module():
-    spec = importlib.util.spec_from_file_location("demo_report", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("demo_report")
 
 
 def _summary(folder: Path, psnr: float, rot: float, trans: float) -> dict:

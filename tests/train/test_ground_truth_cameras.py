@@ -1,29 +1,21 @@
 """scripts/ground_truth_cameras.py: the diagnostic that swaps the camera head's poses for the ground truth."""
 
-import importlib.util
 import subprocess
 import sys
-from pathlib import Path
 
 import torch
 
 from aesplat.geometry import relative_to_first
 from aesplat.train.metrics import relative_pose_errors
 
+from ..script_loader import SCRIPTS, load_script
 from .test_module import make_data, smoke_config
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "ground_truth_cameras.py"
-
-
-def _load_script():
-    spec = importlib.util.spec_from_file_location("ground_truth_cameras", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+SCRIPT = SCRIPTS / "ground_truth_cameras.py"
 
 
 def test_renders_and_gaussians_use_the_ground_truth_poses(smoke_shards):
-    script = _load_script()
+    script = load_script("ground_truth_cameras")
     module = script.GroundTruthCamerasModule(**smoke_config()["model"])
     batch = next(iter(make_data(smoke_shards).train_dataloader())).float_images()
     out, rendered = module(batch)
