@@ -50,8 +50,8 @@ def test_fit_and_resume_restore_the_curriculum(synthetic_shards, tmp_path):
                          limit_val_batches=2)  # fmt: skip
 
     def allowed_near(step: int, gap: int) -> bool:
-        # Batches are fetched ahead of the step that uses them: up to two steps here (Lightning prefetches one).
-        return any(dm.curriculum.accepts(gap, s) for s in range(max(0, step - 2), step + 1))
+        # Each batch is drawn for the step it is trained at, however far ahead it was fetched.
+        return dm.curriculum.accepts(gap, step)
 
     dm, probe = make_dm(), Probe()
     trainer(4).fit(probe, datamodule=dm)
@@ -67,3 +67,11 @@ def test_fit_and_resume_restore_the_curriculum(synthetic_shards, tmp_path):
     assert [s for s, _ in resumed.gaps] == [4, 5]
     assert all(allowed_near(step, g) for step, gaps in resumed.gaps for g in gaps)
     assert all(g >= 5 for _, gaps in resumed.gaps for g in gaps)  # resumed near the end of the warm-up
+
+
+def test_stream_epochs_follow_the_trainers_limit_on_training_batches():
+    dm = DataModule(root="unused", image_size=SIZE, train_batches_per_epoch=10)
+    assert dm.epoch_length() == 10  # no trainer
+    for limit, expected in ((4, 4), (25, 10), (0.5, 5), (1.0, 10), (0.01, 1)):
+        dm.trainer = L.Trainer(limit_train_batches=limit, accelerator="cpu", logger=False)
+        assert dm.epoch_length() == expected, limit

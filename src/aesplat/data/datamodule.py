@@ -1,10 +1,10 @@
 """The LightningDataModule: shards -> ``BatchedExample`` streams for fit / validate / test (SPEC sections 5, 6).
 
 Plain constructor arguments, so LightningCLI builds it from YAML. Rank and world size come from the trainer in
-``setup`` (or ``set_distributed`` in tests), never from environment variables. The training engineer calls
-``set_global_step(step)`` every step; the value sits in shared memory, where every worker's stream reads it
-when an epoch starts (see ``stream.TrainStream``: a step inside an epoch resumes that epoch exactly).
-``state_dict`` / ``load_state_dict`` carry the step (and seed) through checkpoints.
+``setup`` (or ``set_distributed`` in tests), never from environment variables. The training DataLoader writes
+the trainer's global step to shared memory each time an epoch starts, where every worker's stream reads it
+(``stream.TrainStream``: a step inside an epoch resumes that epoch exactly); ``set_global_step`` does the
+same by hand. ``state_dict`` / ``load_state_dict`` carry the step (and seed) through checkpoints.
 """
 
 from __future__ import annotations
@@ -186,9 +186,20 @@ class DataModule(L.LightningDataModule):
         return DataLoader(dataset, batch_size=None, num_workers=self.num_workers,
                           persistent_workers=self.num_workers > 0)  # fmt: skip
 
+    def epoch_length(self) -> int:
+        """Training batches per rank and epoch: ``train_batches_per_epoch``, or what the trainer's
+        ``limit_train_batches`` leaves of it. The stream's epochs must be the trainer's, or a resume would
+        replay the wrong batches."""
+        limit = getattr(self.trainer, "limit_train_batches", None) if self.trainer is not None else None
+        if isinstance(limit, int) and not isinstance(limit, bool):
+            return max(1, min(self.train_batches_per_epoch, limit))
+        if isinstance(limit, float) and 0.0 < limit < 1.0:
+            return max(1, int(self.train_batches_per_epoch * limit))
+        return self.train_batches_per_epoch
+
     def train_dataset(self) -> TrainStream:
         return TrainStream(self.shards("train"), self._config(True), self.rank, self.world_size,
-                           self._counters["train"], self._step, self.curriculum, self.train_batches_per_epoch,
+                           self._counters["train"], self._step, self.curriculum, self.epoch_length(),
                            seed=self.seed, shuffle_buffer=self.shuffle_buffer)  # fmt: skip
 
     def eval_dataset(self, split: str = "test") -> EvalStream:
@@ -198,10 +209,31 @@ class DataModule(L.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         if self.trainer is not None:
             self.set_global_step(max(self.global_step, self.trainer.global_step))
-        return self._loader(self.train_dataset())
+        workers = self.num_workers
+        return _EpochStartLoader(self._sync_epoch_start, self.train_dataset(), batch_size=None,
+                                 num_workers=workers, persistent_workers=workers > 0)  # fmt: skip
+
+    def _sync_epoch_start(self) -> None:
+        """Hand the trainer's global step to the stream as an epoch's iteration starts: the stream takes the
+        epoch's first step (or, on a resume, the step inside it) from there."""
+        if self.trainer is not None:
+            self.set_global_step(self.trainer.global_step)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader(self.eval_dataset("val"))
 
     def test_dataloader(self) -> DataLoader:
         return self._loader(self.eval_dataset("test"))
+
+
+class _EpochStartLoader(DataLoader):
+    """A DataLoader that calls ``on_epoch_start`` in the main process each time an iteration (an epoch)
+    starts, before any worker begins the epoch's stream."""
+
+    def __init__(self, on_epoch_start, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.on_epoch_start = on_epoch_start
+
+    def __iter__(self):
+        self.on_epoch_start()
+        return super().__iter__()
