@@ -182,9 +182,14 @@ class DataModule(L.LightningDataModule):
             flip_augment=self.flip_augment and train,
         )
 
-    def _loader(self, dataset: torch.utils.data.IterableDataset) -> DataLoader:
-        return DataLoader(dataset, batch_size=None, num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0)  # fmt: skip
+    def _loader(self, dataset: torch.utils.data.IterableDataset, on_epoch_start=None) -> DataLoader:
+        """Workers batch the samples themselves (``batch_size=None``); ``on_epoch_start`` runs in the main
+        process each time an iteration begins."""
+        workers = self.num_workers
+        options = {"batch_size": None, "num_workers": workers, "persistent_workers": workers > 0}
+        if on_epoch_start is None:
+            return DataLoader(dataset, **options)
+        return _EpochStartLoader(on_epoch_start, dataset, **options)
 
     def epoch_length(self) -> int:
         """Training batches per rank and epoch: ``train_batches_per_epoch``, or what the trainer's
@@ -207,11 +212,7 @@ class DataModule(L.LightningDataModule):
         return EvalStream(self.shards("test"), self._config(False), self.rank, self.world_size, counters)
 
     def train_dataloader(self) -> DataLoader:
-        if self.trainer is not None:
-            self.set_global_step(max(self.global_step, self.trainer.global_step))
-        workers = self.num_workers
-        return _EpochStartLoader(self._sync_epoch_start, self.train_dataset(), batch_size=None,
-                                 num_workers=workers, persistent_workers=workers > 0)  # fmt: skip
+        return self._loader(self.train_dataset(), on_epoch_start=self._sync_epoch_start)
 
     def _sync_epoch_start(self) -> None:
         """Hand the trainer's global step to the stream as an epoch's iteration starts: the stream takes the

@@ -20,7 +20,7 @@ import json
 import logging
 import tarfile
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -290,43 +290,55 @@ class TrainStream(_ShardStream):
         shards = self.worker_shards(role, nw)
         rng = np.random.default_rng([self.seed, self.rank, role, start])
         raw_stream = self._raw_forever(shards, rng)
-        batch: list[dict] = []
-        barren_passes, accepted, gaps_seen = 0, 0, set()
+        draws = _Draws()
         for j in range(role, self.batches_per_rank, nw):  # this stream's batches of the epoch
             at = start + j  # the global step batch j is trained at
-            while len(batch) < self.cfg.batch_size:
-                item = next(raw_stream)
-                if item is None:  # end of a pass: two in a row without one usable sample cannot recover
-                    barren_passes = 0 if accepted else barren_passes + 1
-                    accepted = 0
-                    if barren_passes >= 2:
-                        raise RuntimeError(
-                            f"no training sample has a context gap allowed by the curriculum at step {at} "
-                            f"({self.curriculum.allowed(at)}) or decodes; gaps seen: {sorted(gaps_seen)[:20]}. "
-                            "Convert with a matching --min-gap/--max-gap or change the curriculum ranges."
-                        )
-                    continue
-                shard, key, raw = item
-                try:  # filter on the metadata before decoding any image
-                    meta = json.loads(raw["meta.json"])
-                    gap, targets = int(meta["gap"]), len(meta["target"])
-                except Exception:  # noqa: BLE001
-                    gap = targets = None  # decode_sample counts it as corrupt
-                if gap is not None and not self.curriculum.accepts(gap, at):
-                    self._count("curriculum_skipped")
-                    gaps_seen.add(gap)
-                    continue
-                if targets is not None and targets < (self.cfg.num_target_views or 1):
-                    self._count("too_few_targets")
-                    continue
-                sample = self._decode(shard, key, raw, rng)  # decoded even when replayed: it draws from rng
-                if sample is None:
-                    continue
-                accepted += 1
-                batch.append(sample)
-            if j >= done:
+            batch = [self._next_sample(raw_stream, rng, at, draws) for _ in range(self.cfg.batch_size)]
+            if j >= done:  # earlier batches are replayed (their samples drew from rng) but not yielded
                 yield collate(batch, self.cfg)
-            batch = []
+
+    def _next_sample(self, raw_stream: Iterator, rng: np.random.Generator, at: int, draws: _Draws) -> dict:
+        """The next sample the curriculum allows at step ``at`` that decodes."""
+        while True:
+            item = next(raw_stream)
+            if item is None:  # end of a pass: two in a row without one usable sample cannot recover
+                draws.barren_passes = 0 if draws.accepted else draws.barren_passes + 1
+                draws.accepted = 0
+                if draws.barren_passes >= 2:
+                    seen = sorted(draws.gaps_seen)[:20]
+                    raise RuntimeError(
+                        f"no training sample has a context gap allowed by the curriculum at step {at} "
+                        f"({self.curriculum.allowed(at)}) or decodes; gaps seen: {seen}. "
+                        "Convert with a matching --min-gap/--max-gap or change the curriculum ranges."
+                    )
+                continue
+            shard, key, raw = item
+            try:  # filter on the metadata before decoding any image
+                meta = json.loads(raw["meta.json"])
+                gap, targets = int(meta["gap"]), len(meta["target"])
+            except Exception:  # noqa: BLE001
+                gap = targets = None  # decode_sample counts it as corrupt
+            if gap is not None and not self.curriculum.accepts(gap, at):
+                self._count("curriculum_skipped")
+                draws.gaps_seen.add(gap)
+                continue
+            if targets is not None and targets < (self.cfg.num_target_views or 1):
+                self._count("too_few_targets")
+                continue
+            sample = self._decode(shard, key, raw, rng)
+            if sample is not None:
+                draws.accepted += 1
+                return sample
+
+
+@dataclass
+class _Draws:
+    """What one training iterator has drawn so far: passes over the shards without a usable sample, usable
+    samples in the current pass, and the gaps the curriculum turned down (for the error message)."""
+
+    barren_passes: int = 0
+    accepted: int = 0
+    gaps_seen: set[int] = field(default_factory=set)
 
 
 class EvalStream(_ShardStream):
