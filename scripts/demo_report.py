@@ -313,7 +313,8 @@ def main(argv: list[str] | None = None) -> int:
     timings = read_timings(args.timings)
 
     # The render grid re-creates the untrained model from the run's seed; its PSNR must match `aesplat test`.
-    scenes = evaluation_scenes(loaded, None, None, args.scenes, device)
+    all_scenes = evaluation_scenes(loaded, None, None, 1_000_000, device)  # every test scene, read once
+    scenes = all_scenes[: args.scenes]
     untrained = initial_model(config, device)
     grid_psnr = render_grid(loaded, untrained, scenes, args.out / "render_grid.png")
     logged = read_per_scene(args.initial)
@@ -322,7 +323,6 @@ def main(argv: list[str] | None = None) -> int:
     have_curve = loss_curve(metrics, initial["metrics"]["psnr"], trained["metrics"]["psnr"],
                             args.out / "loss_curve.png")  # fmt: skip
 
-    all_scenes = evaluation_scenes(loaded, None, None, 1_000_000, device)
     baselines = context_baselines([(scene.context.images, scene.target.images) for scene in all_scenes])
 
     gain = trained["metrics"]["psnr"] - initial["metrics"]["psnr"]
