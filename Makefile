@@ -42,6 +42,8 @@ DEMO_RUN := $(DEMO_DIR)/run
 DEMO_CKPT := $(DEMO_RUN)/checkpoints/last.ckpt
 DEMO_TIMES := $(DEMO_DIR)/timings.csv
 DEMO_ARGS := -c $(DEMO_CONFIG) --data.root $(DEMO_DIR)/shards --data.image_size $(DEMO_SIZE)
+# Extra data_prep/synthetic.py options, e.g. DEMO_SCENE_ARGS="--texture-scale 1 --turn-scale 1" for the default scenes.
+DEMO_SCENE_ARGS ?=
 DEMO_FIT_ARGS ?=  # extra `aesplat fit` overrides, e.g. DEMO_FIT_ARGS="--trainer.max_steps 200"
 # DEMO_DIAGNOSE=1 (default) also trains the same model with ground-truth poses in place of the camera head's
 # (scripts/ground_truth_cameras.py; about two more minutes) so the report can say what the pose head costs.
@@ -58,7 +60,8 @@ timed = echo "$(1),$$(( $$(date +%s) - t0 ))" >> $(DEMO_TIMES)
 demo: $(STAMP)
 	rm -rf $(DEMO_RUN) $(DEMO_DIR)/initial $(DEMO_DIR)/bench $(DEMO_GT)
 	mkdir -p $(DEMO_DIR) && echo "stage,seconds" > $(DEMO_TIMES)
-	t0=$$(date +%s); $(PY) data_prep/synthetic.py --out $(DEMO_DIR)/src && $(call timed,synthetic scenes)
+	t0=$$(date +%s); $(PY) data_prep/synthetic.py --out $(DEMO_DIR)/src $(DEMO_SCENE_ARGS) \
+		&& $(call timed,synthetic scenes)
 	t0=$$(date +%s); $(PY) data_prep/to_shards.py --src $(DEMO_DIR)/src --out $(DEMO_DIR)/shards \
 		--size $(DEMO_SIZE) && $(call timed,shards)
 	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_DIR)/initial \

@@ -29,6 +29,18 @@ def main(argv: list[str] | None = None) -> None:
         default=1,
         help="anti-alias with S x S rays per pixel (about S^2 times slower; default 1)",
     )
+    p.add_argument(
+        "--texture-scale",
+        type=float,
+        default=1.0,
+        help="multiply every texture's feature size (checker cells, wave periods) by this (default 1)",
+    )
+    p.add_argument(
+        "--turn-scale",
+        type=float,
+        default=1.0,
+        help="multiply how far each camera path turns (its change of yaw) by this (default 1)",
+    )
     p.add_argument("--scenes-per-chunk", type=int, default=4, help="scenes per *.torch chunk (default 4)")
     p.add_argument("--specular", type=float, default=None, help="probability a scene declares `specular`")
     p.add_argument("--exposure", type=float, default=None, help="probability a scene declares `exposure`")
@@ -38,7 +50,8 @@ def main(argv: list[str] | None = None) -> None:
     info = generate_dataset(
         a.out, scenes=a.scenes, frames=a.frames, height=a.height, width=a.width, seed=a.seed,
         test_scenes=a.test_scenes, scenes_per_chunk=a.scenes_per_chunk, effect_probs=probs,
-        supersample=a.supersample, progress=True,
+        supersample=a.supersample, texture_scale=a.texture_scale,
+        turn_scale=a.turn_scale, progress=True,
     )  # fmt: skip
     n = info["train_scenes"] + info["test_scenes"]
     print(f"wrote {n} scenes ({info['train_scenes']} train, {info['test_scenes']} test) x {a.frames} frames "

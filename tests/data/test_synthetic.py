@@ -106,6 +106,37 @@ def test_scene_is_deterministic_from_seed():
     assert not torch.equal(a.images, c.images)
 
 
+def test_texture_scale_stretches_every_texture_feature():
+    base = sample_scene(3, frames=3, height=8, width=8, effects=("textures",))
+    wide = sample_scene(3, frames=3, height=8, width=8, effects=("textures",), texture_scale=3.0)
+    points = torch.rand(4000, 3) * 4.0 - 2.0
+    surface = torch.randint(0, base.num_surfaces, (4000,))
+    near = albedo(base.materials, points, surface, textured=True)
+    far = albedo(wide.materials, points * 3.0, surface, textured=True)
+    # The same texture three times larger (checker edges may flip under float rounding) ...
+    assert ((near - far).abs().amax(-1) < 1e-4).float().mean() > 0.99
+    # ... and not the same texture at the same scale.
+    assert (near - albedo(wide.materials, points, surface, textured=True)).abs().mean() > 0.02
+    assert torch.equal(base.extrinsics, wide.extrinsics)  # only the textures change
+
+
+def _yaw(extrinsics: torch.Tensor) -> torch.Tensor:
+    forward = extrinsics[:, :3, 2]  # camera z axis in the world (y down): heading angle about y
+    return torch.atan2(forward[:, 0], forward[:, 2])
+
+
+def test_turn_scale_scales_how_far_a_path_turns():
+    frames = 12
+    turning = [sample_scene(s, frames=frames, height=8, width=8).extrinsics for s in range(6)]
+    straight = [sample_scene(s, frames=frames, height=8, width=8, turn_scale=0.0).extrinsics for s in range(6)]
+    assert max((_yaw(e) - _yaw(e)[0]).abs().max() for e in turning) > 0.2  # some default path turns
+    for e in straight:  # the heading never changes; the camera still walks and bobs
+        assert torch.allclose(_yaw(e), _yaw(e)[:1].expand(frames), atol=1e-5)
+        assert torch.linalg.norm(e[-1, :3, 3] - e[0, :3, 3]) > 1.0
+    same = sample_scene(0, frames=frames, height=8, width=8, turn_scale=1.0).extrinsics
+    assert torch.equal(same, turning[0])
+
+
 def test_exposure_scales_frames():
     scene = sample_scene(4, frames=6, height=16, width=16, effects=("exposure",))
     base = render_scene(replace(scene, effects=frozenset()), 16, 16)

@@ -263,8 +263,11 @@ def look_pose(position: Tensor, yaw: Tensor, pitch: Tensor) -> Tensor:
     return pose
 
 
-def _camera_path(rng: np.random.Generator, frames: int, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A house-tour path: walk forward, turn smoothly, bob slightly. Returns positions [F, 3], angles [F, 2]."""
+def _camera_path(
+    rng: np.random.Generator, frames: int, half: np.ndarray, turn_scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """A house-tour path: walk forward, turn smoothly (the yaw's change along the path scaled by
+    ``turn_scale``), bob slightly. Returns positions [F, 3], angles [F, 2]."""
     for _ in range(100):
         start = np.array(
             [rng.uniform(-0.5, 0.5) * half[0], rng.uniform(-0.15, 0.15), rng.uniform(-0.5, 0.5) * half[2]]
@@ -272,7 +275,8 @@ def _camera_path(rng: np.random.Generator, frames: int, half: np.ndarray) -> tup
         yaw0 = math.atan2(-start[0], -start[2]) + rng.uniform(-0.6, 0.6)  # roughly towards the room centre
         s = np.linspace(0.0, 1.0, frames)
         turn = rng.uniform(-0.9, 0.9)
-        yaw = yaw0 + turn * s + 0.08 * np.sin(2 * math.pi * rng.uniform(0.5, 1.5) * s + rng.uniform(0, 6.3))
+        wobble = 0.08 * np.sin(2 * math.pi * rng.uniform(0.5, 1.5) * s + rng.uniform(0, 6.3))
+        yaw = yaw0 + turn_scale * turn * s + turn_scale * wobble  # turn_scale 1: the same bits as unscaled
         pitch = rng.uniform(-0.15, 0.2) + 0.05 * np.sin(2 * math.pi * s + rng.uniform(0, 6.3))
         length = rng.uniform(1.5, 3.0)
         step = length / max(frames - 1, 1) * (1.0 + 0.2 * np.sin(2 * math.pi * s * rng.uniform(0.5, 2.0)))
@@ -287,7 +291,9 @@ def _camera_path(rng: np.random.Generator, frames: int, half: np.ndarray) -> tup
     raise RuntimeError("could not fit a camera path into the room")
 
 
-def _materials(rng: np.random.Generator, count: int, specular_fraction: float) -> Materials:
+def _materials(
+    rng: np.random.Generator, count: int, specular_fraction: float, texture_scale: float = 1.0
+) -> Materials:
     hue = rng.uniform(0.15, 0.85, size=(count, 3))
     other = np.clip(
         hue * rng.uniform(0.4, 0.8, size=(count, 1)) + rng.uniform(-0.1, 0.1, size=(count, 3)), 0, 1
@@ -300,9 +306,9 @@ def _materials(rng: np.random.Generator, count: int, specular_fraction: float) -
     return Materials(
         color_a=to_t(hue),
         color_b=to_t(other),
-        checker=to_t(rng.uniform(0.25, 0.8, size=count)),
+        checker=to_t(rng.uniform(0.25, 0.8, size=count) * texture_scale),
         offset=to_t(rng.uniform(0.1, 0.9, size=(count, 3))),
-        wave_dir=to_t(directions * freq),
+        wave_dir=to_t(directions * freq / texture_scale),
         wave_phase=to_t(rng.uniform(0, 2 * math.pi, size=(count, NUM_WAVES))),
         wave_amp=to_t(rng.uniform(0.15, 0.45, size=count)),
         ks=to_t(np.where(glossy, rng.uniform(0.4, 0.9, size=count), 0.0)),
@@ -318,6 +324,8 @@ def sample_scene(
     key: str | None = None,
     effects: tuple[str, ...] | None = None,
     effect_probs: dict[str, float] | None = None,
+    texture_scale: float = 1.0,
+    turn_scale: float = 1.0,
 ) -> Scene:
     """A random scene, fully determined by ``seed``. ``effects`` forces the declared effects; otherwise each
     effect is declared with its probability in ``effect_probs``."""
@@ -328,7 +336,7 @@ def sample_scene(
     if effects is None:
         effects = tuple(e for e in EFFECTS if rng.uniform() < probs[e])
     half = np.array([rng.uniform(3.0, 5.0), 1.4, rng.uniform(3.0, 5.0)])
-    pos, angles = _camera_path(rng, frames, half)
+    pos, angles = _camera_path(rng, frames, half, turn_scale)
 
     boxes, spheres = [], []
     want_boxes, want_spheres = int(rng.integers(3, 7)), int(rng.integers(1, 4))
@@ -349,7 +357,7 @@ def sample_scene(
             spheres.append((centre, size[0]))
 
     n_surfaces = 6 + len(boxes) + len(spheres)
-    materials = _materials(rng, n_surfaces, specular_fraction=0.6)
+    materials = _materials(rng, n_surfaces, specular_fraction=0.6, texture_scale=texture_scale)
     fov_x = math.radians(rng.uniform(55.0, 75.0))
     fx = 0.5 / math.tan(fov_x / 2)
     intrinsics = torch.tensor([[fx, 0.0, 0.5], [0.0, fx * width / height, 0.5], [0.0, 0.0, 1.0]])
@@ -421,7 +429,8 @@ def scene_to_chunk_entry(scene: Scene, rendered: RenderedFrames, jpeg_quality: i
 
 def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int, width: int, seed: int,
                   scenes_per_chunk: int, effect_probs: dict[str, float] | None, jpeg_quality: int,
-                  supersample: int, eval_index: dict, bar) -> None:  # fmt: skip
+                  supersample: int, texture_scale: float, turn_scale: float, eval_index: dict,
+                  bar) -> None:  # fmt: skip
     lo, hi = recommended_gaps(frames)
     eval_rng = np.random.default_rng(seed + 7_919)
     for split, count, offset in (("train", scenes, 0), ("test", n_test, 1_000_000)):
@@ -433,7 +442,8 @@ def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int,
             for i in range(start, min(count, start + scenes_per_chunk)):
                 scene_seed = seed * 10_000_019 + offset + i
                 scene = sample_scene(scene_seed, frames, height, width, key=f"{split}{seed:03d}_{i:05d}",
-                                     effect_probs=effect_probs)  # fmt: skip
+                                     effect_probs=effect_probs, texture_scale=texture_scale,
+                                     turn_scale=turn_scale)  # fmt: skip
                 rendered = render_scene(scene, height, width, supersample=supersample)
                 chunk.append(scene_to_chunk_entry(scene, rendered, jpeg_quality))
                 if split == "test":
@@ -462,6 +472,8 @@ def generate_dataset(
     effect_probs: dict[str, float] | None = None,
     jpeg_quality: int = 95,
     supersample: int = 1,
+    texture_scale: float = 1.0,
+    turn_scale: float = 1.0,
     progress: bool = False,
 ) -> dict:
     """Write a synthetic data set in the chunk format: ``out/{train,test}/*.torch`` + ``index.json``,
@@ -486,7 +498,7 @@ def generate_dataset(
     torch.set_num_threads(1)  # small element-wise kernels: extra threads only spin (10x slower on a busy CPU)
     try:
         _write_splits(out, scenes, n_test, frames, height, width, seed, scenes_per_chunk, effect_probs,
-                      jpeg_quality, supersample, eval_index, bar)  # fmt: skip
+                      jpeg_quality, supersample, texture_scale, turn_scale, eval_index, bar)  # fmt: skip
     finally:
         torch.set_num_threads(threads)
         bar.close()
@@ -499,6 +511,8 @@ def generate_dataset(
         "height": height,
         "width": width,
         "supersample": supersample,
+        "texture_scale": texture_scale,
+        "turn_scale": turn_scale,
         "train_scenes": scenes,
         "test_scenes": n_test,
         "gap_range": [lo, hi],

@@ -1,0 +1,54 @@
+"""scripts/pose_sensitivity.py: the yaw landscape with ground-truth poses, the downhill test at own poses."""
+
+import json
+
+import torch
+
+from aesplat.geometry import quat_to_matrix
+
+from ..script_loader import load_script
+from .test_module import make_data, smoke_config
+
+
+def test_yaw_helpers_round_trip():
+    script = load_script("pose_sensitivity")
+    pose = torch.eye(4)
+    pose[:3, :3] = quat_to_matrix(torch.nn.functional.normalize(torch.tensor([0.9, 0.2, -0.3, 0.1]), dim=0))
+    pose[:3, 3] = torch.tensor([0.5, -1.0, 2.0])
+    turned = pose.clone()
+    turned[:3, :3] = pose[:3, :3] @ script.yaw_rotation(7.0)
+    assert abs(script.relative_yaw(pose, turned) - 7.0) < 1e-4
+    assert abs(script.relative_yaw(turned, pose) + 7.0) < 1e-4
+    # a turn about the camera's own y axis keeps that axis
+    torch.testing.assert_close(turned[:3, 1], pose[:3, 1])
+
+
+def test_measures_a_ground_truth_pose_checkpoint(smoke_shards, tmp_path):
+    script = load_script("pose_sensitivity")
+    gt = load_script("ground_truth_cameras")
+    module = gt.GroundTruthCamerasModule(**smoke_config()["model"]).eval()
+    ckpt = tmp_path / "gt.ckpt"  # the keys carry the wrapper's prefix, as the diagnostic's checkpoints do
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, ckpt)
+    loaded = script.load_module(ckpt)
+    assert torch.equal(loaded.model.camera_head.rotation.weight, module.model.camera_head.head.rotation.weight)
+
+    size = smoke_config()["data"]["image_size"]
+    out = tmp_path / "sensitivity.json"
+    result = script.main(["--ckpt", str(ckpt), "--data-root", str(smoke_shards), "--image-size", str(size),
+                          "--scenes", "2", "--offsets", "-3", "0", "3", "--out", str(out)])  # fmt: skip
+    assert json.loads(out.read_text())["landscape_psnr"] == result["landscape_psnr"]
+
+    # Offset 0 is exactly the render of the ground-truth-pose module itself.
+    psnrs = []
+    with torch.no_grad():
+        for _, batch in zip(range(2), make_data(smoke_shards, num_workers=0).test_dataloader()):
+            batch = module.on_after_batch_transfer(batch, 0)
+            _, rendered = module(batch)
+            mse = ((rendered.color - batch.target.images) ** 2).mean(dim=(2, 3, 4))[0]
+            psnrs += (-10 * torch.log10(mse)).tolist()
+    assert result["views"] == len(psnrs)
+    assert abs(result["landscape_psnr"][1] - sum(psnrs) / len(psnrs)) < 1e-3
+    # Turned cameras render something else, and each downhill verdict follows its two losses.
+    assert min(abs(result["landscape_psnr"][i] - result["landscape_psnr"][1]) for i in (0, 2)) > 0.05
+    for row in result["downhill"]:
+        assert row["agrees"] == ((row["loss_plus"] < row["loss_minus"]) == (row["yaw_error_deg"] > 0))
