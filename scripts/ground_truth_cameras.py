@@ -25,7 +25,7 @@ from aesplat.train import AESplatModule
 from aesplat.types import BatchedExample
 
 
-class _PosesFromBatch(nn.Module):
+class PosesFromBatch(nn.Module):
     """Wraps a camera head: keeps its intrinsics, returns the poses set for the current batch."""
 
     def __init__(self, head: nn.Module) -> None:
@@ -45,7 +45,7 @@ class GroundTruthCamerasModule(AESplatModule):
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        self.model.camera_head = _PosesFromBatch(self.model.camera_head)
+        self.model.camera_head = PosesFromBatch(self.model.camera_head)
 
     def forward(self, batch: BatchedExample):
         poses = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1)

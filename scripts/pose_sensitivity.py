@@ -26,27 +26,17 @@ import sys
 from pathlib import Path
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from aesplat.data import DataModule
 from aesplat.geometry import relative_to_first
 from aesplat.render import render
 from aesplat.train import AESplatModule
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ground_truth_cameras import PosesFromBatch  # noqa: E402  (a sibling script, not a package)
+
 WRAPPED = "model.camera_head.head."  # key prefix of checkpoints written by ground_truth_cameras.py
-
-
-class _FixedPoses(nn.Module):
-    """Wraps a camera head: keeps its intrinsics, returns ``poses`` when set, else its own poses."""
-
-    def __init__(self, head: nn.Module) -> None:
-        super().__init__()
-        self.head = head
-        self.poses: Tensor | None = None
-
-    def forward(self, camera_tokens: Tensor) -> tuple[Tensor, Tensor]:
-        extrinsics, intrinsics = self.head(camera_tokens)
-        return (extrinsics if self.poses is None else self.poses.to(extrinsics)), intrinsics
 
 
 def load_module(path: str | Path) -> AESplatModule:
@@ -72,6 +62,25 @@ def relative_yaw(pose: Tensor, reference: Tensor) -> float:
     return math.degrees(math.atan2(rel[0, 2].item(), rel[0, 0].item()))
 
 
+def turn_yaw(pose: Tensor, degrees: float) -> Tensor:
+    """Camera-to-world ``pose`` [..., 4, 4] turned about its own y axis by ``degrees``."""
+    turned = pose.clone()
+    turned[..., :3, :3] = pose[..., :3, :3] @ yaw_rotation(degrees)
+    return turned
+
+
+def _forward(module: AESplatModule, batch, poses: Tensor | None = None):
+    """The model's output for ``batch``, with the camera head's poses or with ``poses`` [B, V, 4, 4]."""
+    head = module.model.camera_head
+    if poses is not None:
+        module.model.camera_head = PosesFromBatch(head)
+        module.model.camera_head.poses = poses
+    try:
+        return module.model(batch.context.images, batch.target.images)
+    finally:
+        module.model.camera_head = head
+
+
 def _mse(module: AESplatModule, gaussians, extrinsics: Tensor, intrinsics: Tensor, image: Tensor) -> float:
     h, w = image.shape[-2:]
     background = torch.tensor(module.render_cfg.background)
@@ -82,37 +91,22 @@ def _mse(module: AESplatModule, gaussians, extrinsics: Tensor, intrinsics: Tenso
 @torch.no_grad()
 def measure(module: AESplatModule, batches, offsets: list[float], step: float = 1.0) -> dict:
     """The two measurements over ``batches`` (eval batches of one scene each); see the module docstring."""
-    head = module.model.camera_head
-    module.model.camera_head = fixed = _FixedPoses(head)
     landscape, downhill = [], []
-    try:
-        for batch in batches:
-            batch = module.on_after_batch_transfer(batch, 0)
-            vc = batch.context.num_views
-            truth = relative_to_first(torch.cat([batch.context.extrinsics, batch.target.extrinsics], 1).float())
-            fixed.poses = None
-            own = module.model(batch.context.images, batch.target.images)
-            fixed.poses = truth
-            true = module.model(batch.context.images, batch.target.images)
-            for t in range(batch.target.num_views):
-                v, image = vc + t, batch.target.images[:, t]
-                row = []
-                for d in offsets:
-                    pose = truth[:, v : v + 1].clone()
-                    pose[..., :3, :3] = pose[..., :3, :3] @ yaw_rotation(d)
-                    row.append(_mse(module, true.gaussians, pose, true.intrinsics[:, v : v + 1], image))
-                landscape.append(row)
-                pose = own.extrinsics[:, v : v + 1]
-                error = relative_yaw(pose[0, 0], truth[0, v])
-                losses = []
-                for d in (-step, step):
-                    turned = pose.clone()
-                    turned[..., :3, :3] = turned[..., :3, :3] @ yaw_rotation(d)
-                    losses.append(_mse(module, own.gaussians, turned, own.intrinsics[:, v : v + 1], image))
-                downhill.append({"yaw_error_deg": error, "loss_minus": losses[0], "loss_plus": losses[1],
-                                 "agrees": (losses[1] < losses[0]) == (error > 0)})  # fmt: skip
-    finally:
-        module.model.camera_head = head
+    for batch in batches:
+        batch = module.on_after_batch_transfer(batch, 0)
+        vc = batch.context.num_views
+        truth = relative_to_first(torch.cat([batch.context.extrinsics, batch.target.extrinsics], 1).float())
+        own, true = _forward(module, batch), _forward(module, batch, truth)
+        for t in range(batch.target.num_views):
+            v, image = vc + t, batch.target.images[:, t]
+            landscape.append([_mse(module, true.gaussians, turn_yaw(truth[:, v : v + 1], d),
+                                   true.intrinsics[:, v : v + 1], image) for d in offsets])  # fmt: skip
+            pose = own.extrinsics[:, v : v + 1]
+            error = relative_yaw(pose[0, 0], truth[0, v])
+            minus, plus = (_mse(module, own.gaussians, turn_yaw(pose, d), own.intrinsics[:, v : v + 1], image)
+                           for d in (-step, step))  # fmt: skip
+            downhill.append({"yaw_error_deg": error, "loss_minus": minus, "loss_plus": plus,
+                             "agrees": (plus < minus) == (error > 0)})  # fmt: skip
     psnr = -10.0 * torch.log10(torch.tensor(landscape).clamp_min(1e-10))
     return {
         "offsets_deg": offsets,

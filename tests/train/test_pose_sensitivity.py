@@ -15,8 +15,8 @@ def test_yaw_helpers_round_trip():
     pose = torch.eye(4)
     pose[:3, :3] = quat_to_matrix(torch.nn.functional.normalize(torch.tensor([0.9, 0.2, -0.3, 0.1]), dim=0))
     pose[:3, 3] = torch.tensor([0.5, -1.0, 2.0])
-    turned = pose.clone()
-    turned[:3, :3] = pose[:3, :3] @ script.yaw_rotation(7.0)
+    turned = script.turn_yaw(pose, 7.0)
+    torch.testing.assert_close(turned[:3, 3], pose[:3, 3])  # the camera turns on the spot
     assert abs(script.relative_yaw(pose, turned) - 7.0) < 1e-4
     assert abs(script.relative_yaw(turned, pose) + 7.0) < 1e-4
     # a turn about the camera's own y axis keeps that axis
