@@ -24,6 +24,7 @@ from .rotation import (
     relative_to_first,
     rot6d_to_matrix,
     safe_norm,
+    safe_normalize,
 )
 from .sh import (
     C0,
@@ -60,6 +61,7 @@ __all__ = [
     "rgb_to_sh_dc",
     "rot6d_to_matrix",
     "safe_norm",
+    "safe_normalize",
     "sh_basis",
     "sh_dc_to_rgb",
     "sh_degree_from_coeffs",

@@ -1,20 +1,40 @@
 """Rotations and poses: 6D rotations, quaternions (w, x, y, z), homogeneous translations, covariances.
 
 Pure functions, any leading batch shape, safe at degenerate inputs (no NaN in values or gradients).
+
+Square roots and divisions near zero are guarded with a ``where`` *before* the singular operation, never
+with a clamp alone: the derivative of ``clamp`` at its bound, and autograd's handling of a zero gradient
+times an infinite local derivative, differ between torch releases (``sqrt(clamp_min(x, 0))`` at x = 0 gives
+a zero gradient on torch 2.14 and NaN on 2.11 / 2.13).
 """
 
 from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
+from kornia.geometry.conversions import rotation_matrix_to_quaternion
 from torch import Tensor
 
 EPS = 1e-8
 
 
 def safe_norm(x: Tensor, dim: int = -1, keepdim: bool = False, eps: float = EPS) -> Tensor:
-    """Euclidean norm whose gradient stays finite at zero (sqrt of a clamped square sum)."""
-    return (x * x).sum(dim=dim, keepdim=keepdim).clamp_min(eps * eps).sqrt()
+    """Euclidean norm, ``eps`` (with a zero gradient) where it would be below ``eps``; finite backward
+    everywhere, the zero vector included."""
+    n2 = (x * x).sum(dim=dim, keepdim=keepdim)
+    ok = n2 > eps * eps
+    return torch.where(ok, torch.where(ok, n2, torch.ones_like(n2)).sqrt(), torch.full_like(n2, eps))
+
+
+def safe_normalize(x: Tensor, dim: int = -1) -> Tensor:
+    """x / |x| along ``dim``; a zero (or subnormal) vector maps to zero with a zero gradient.
+
+    The guard is the dtype's smallest normal number, so any vector that is not (numerically) zero is
+    normalised exactly: this is for directions such as Gaussian centre minus camera centre.
+    """
+    n2 = (x * x).sum(dim=dim, keepdim=True)
+    ok = n2 > torch.finfo(x.dtype).tiny
+    return torch.where(ok, x * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2))), torch.zeros_like(x))
 
 
 def _fallback_axis(v: Tensor) -> Tensor:
@@ -100,32 +120,12 @@ def quat_to_matrix(quats: Tensor) -> Tensor:
 def matrix_to_quat(rot: Tensor) -> Tensor:
     """Rotation matrices [..., 3, 3] -> unit quaternions (w, x, y, z) [..., 4] with w >= 0.
 
-    Uses the numerically best-conditioned of the four candidate formulas for each matrix.
+    kornia's conversion (Shepperd's method: the best-conditioned of four formulas) guards each square root
+    with a ``where`` before it, so the backward is finite at the identity and at 180° turns on every torch
+    release; kornia < 0.9 clamped instead, which is why the dependency is ``kornia>=0.9``.
     """
-    m = rot
-    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
-    # 4*q_i^2 for each component; pick the largest to divide by.
-    q_abs = torch.stack(
-        [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], dim=-1
-    )
-    q_abs = q_abs.clamp_min(0.0).sqrt()
-    cands = torch.stack(
-        [
-            torch.stack([q_abs[..., 0] ** 2, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
-                         m[..., 1, 0] - m[..., 0, 1]], dim=-1),
-            torch.stack([m[..., 2, 1] - m[..., 1, 2], q_abs[..., 1] ** 2, m[..., 1, 0] + m[..., 0, 1],
-                         m[..., 0, 2] + m[..., 2, 0]], dim=-1),
-            torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1], q_abs[..., 2] ** 2,
-                         m[..., 2, 1] + m[..., 1, 2]], dim=-1),
-            torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 2, 0] + m[..., 0, 2], m[..., 2, 1] + m[..., 1, 2],
-                         q_abs[..., 3] ** 2], dim=-1),
-        ],
-        dim=-2,
-    )  # fmt: skip
-    cands = cands / (2.0 * q_abs[..., None].clamp_min(0.1))
-    best = q_abs.argmax(dim=-1)
-    q = torch.gather(cands, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]
-    q = q / safe_norm(q, keepdim=True)
+    q = rotation_matrix_to_quaternion(rot)
+    q = q / safe_norm(q, keepdim=True)  # unit even for a matrix that is not exactly orthonormal
     return torch.where(q[..., :1] < 0, -q, q)
 
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from aesplat.geometry import covariance_from_scale_rot, eval_sh, invert_pose, num_sh_coeffs
+from aesplat.geometry import covariance_from_scale_rot, eval_sh, invert_pose, num_sh_coeffs, safe_normalize
 from aesplat.types import Gaussians, RenderOutput
 
 from .interface import RenderSettings, RenderStats
@@ -83,7 +83,7 @@ def fold_cameras(
         colors = eval_sh(sh, gaussians.means, 0)[:, None].expand(b, v, n, 3)
     else:
         d = gaussians.means[:, None] - extrinsics[:, :, None, :3, 3]  # [B, V, N, 3]
-        dirs = d * torch.rsqrt((d * d).sum(-1, keepdim=True).clamp_min(torch.finfo(d.dtype).tiny))
+        dirs = safe_normalize(d)  # every Gaussian, culled ones too: one at a camera centre gets 0
         colors = eval_sh(sh[:, None].expand(b, v, *sh.shape[1:]), dirs, sh_degree)
     opac = gaussians.opacities[:, None].expand(b, v, n)
     return FoldedGaussians(

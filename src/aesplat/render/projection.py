@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from aesplat.geometry import eval_sh, invert_pose, num_sh_coeffs, quat_to_matrix
+from aesplat.geometry import eval_sh, invert_pose, num_sh_coeffs, quat_to_matrix, safe_normalize
 from aesplat.types import Gaussians
 
 ALPHA_MIN = 1.0 / 255.0  # contributions below this alpha are skipped
@@ -131,7 +131,6 @@ def project_gaussians(
     """
     b, n = gaussians.means.shape[:2]
     v = extrinsics.shape[1]
-    dtype = gaussians.means.dtype
     w2c = invert_pose(extrinsics)  # [B, V, 4, 4]
     rot, trans = w2c[..., :3, :3], w2c[..., :3, 3]
 
@@ -200,8 +199,7 @@ def project_gaussians(
     else:
         campos = extrinsics[..., :3, 3].reshape(b * v, 3).index_select(0, cam_v)
         d = flat_means.index_select(0, gid_v) - campos
-        norm2 = (d * d).sum(-1, keepdim=True)
-        dirs = d * torch.rsqrt(norm2.clamp_min(torch.finfo(dtype).tiny))  # z > near, so norm2 > 0
+        dirs = safe_normalize(d)  # z > near, so d != 0; guarded all the same
         colors = eval_sh(sh, dirs, sh_degree)
 
     projected = Projected(

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
-from aesplat.geometry import matrix_to_quat, relative_to_first
+from aesplat.geometry import matrix_to_quat, relative_to_first, safe_norm
 
 OVERLAP_BUCKETS = {"small": (0.0, 0.3), "medium": (0.3, 0.55), "large": (0.55, math.inf)}
 
@@ -37,14 +37,19 @@ def rotation_angle_deg(rel_pred: Tensor, rel_gt: Tensor) -> Tensor:
     """Angle of the rotation taking one pose's rotation to the other's: [..., 4, 4] x2 -> [...] in degrees."""
     delta = rel_pred[..., :3, :3].transpose(-1, -2) @ rel_gt[..., :3, :3]
     q = matrix_to_quat(delta)  # w >= 0, so the angle lies in [0, 180]
-    return torch.rad2deg(2.0 * torch.atan2(q[..., 1:].norm(dim=-1), q[..., 0]))
+    # safe_norm (eps 0): a zero vector part (equal rotations) has norm 0 with a finite gradient; then w = 1.
+    return torch.rad2deg(2.0 * torch.atan2(safe_norm(q[..., 1:], eps=0.0), q[..., 0]))
 
 
 def translation_angle_deg(rel_pred: Tensor, rel_gt: Tensor) -> Tensor:
     """Angle between the translation directions of two poses: [..., 4, 4] x2 -> [...] in degrees."""
     a, b = rel_pred[..., :3, 3], rel_gt[..., :3, 3]
-    cross = torch.linalg.cross(a, b, dim=-1).norm(dim=-1)
-    return torch.rad2deg(torch.atan2(cross, (a * b).sum(-1)))
+    cross = safe_norm(torch.linalg.cross(a, b, dim=-1), eps=0.0)
+    dot = (a * b).sum(-1)
+    # A zero translation has no direction: angle 0, and atan2(0, 0) is kept out of the backward.
+    ok = (cross > 0) | (dot != 0)
+    angle = torch.atan2(torch.where(ok, cross, 0.0), torch.where(ok, dot, 1.0))
+    return torch.rad2deg(angle)
 
 
 def relative_pose_errors(pred_extrinsics: Tensor, gt_extrinsics: Tensor) -> tuple[Tensor, Tensor]:
