@@ -2,7 +2,6 @@
 
 import pytest
 import torch
-import torchvision
 
 from aesplat.train.loss import (
     VGG16_FILE,
@@ -24,6 +23,8 @@ def empty_torch_home(tmp_path, monkeypatch):
 @pytest.fixture
 def fake_vgg_weights(empty_torch_home):
     """A VGG16 feature checkpoint with torchvision's key layout (random values) where torchvision keeps it."""
+    # LPIPS itself is built on torchvision; the older-torch test leg has no torchvision build to match.
+    torchvision = pytest.importorskip("torchvision")
     features = torchvision.models.vgg.make_layers(torchvision.models.vgg.cfgs["D"])
     path = empty_torch_home / "hub" / "checkpoints" / VGG16_FILE
     path.parent.mkdir(parents=True)
