@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test test-slow lint format demo bench clean
+.PHONY: venv test test-slow test-torch-floor lint format demo bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -22,6 +22,29 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
+
+# `make test-torch-floor`: the geometry, model, render and training tests on the oldest torch this project is
+# tested with (the floor in pyproject.toml), a CPU wheel in a venv of its own. The constraint keeps pip from
+# upgrading torch while it installs the package's other dependencies. The torchvision it resolves is built
+# against CUDA torch and does not import with the CPU one: it is removed, and the LPIPS tests that need it skip.
+TORCH_FLOOR ?= 2.13.0+cpu
+FLOOR_VENV ?= .venv-torch-floor
+FLOOR_PY := $(FLOOR_VENV)/bin/python
+FLOOR_STAMP := $(FLOOR_VENV)/.installed
+FLOOR_TESTS ?= tests/geometry tests/model tests/render tests/train
+
+$(FLOOR_STAMP): pyproject.toml
+	test -x $(FLOOR_PY) || $(PYTHON) -m venv $(FLOOR_VENV)
+	$(FLOOR_PY) -m pip install --quiet --upgrade pip
+	echo "torch==$(TORCH_FLOOR)" > $(FLOOR_VENV)/constraints.txt
+	$(FLOOR_PY) -m pip install --quiet -c $(FLOOR_VENV)/constraints.txt -e ".[dev]"
+	$(FLOOR_PY) -m pip uninstall --quiet --yes torchvision
+	$(FLOOR_PY) -c "import torch; v = torch.__version__; assert v == '$(TORCH_FLOOR)', v; print('torch', v)"
+	touch $(FLOOR_STAMP)
+
+test-torch-floor: $(FLOOR_STAMP)
+	$(FLOOR_PY) -c "import torch; print('torch', torch.__version__)"
+	$(FLOOR_PY) -m pytest -q $(FLOOR_TESTS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
@@ -93,4 +116,4 @@ bench: $(STAMP)
 	$(AESPLAT) bench --ckpt $(CKPT) --out $(BENCH_OUT)
 
 clean:
-	rm -rf $(VENV) outputs .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(FLOOR_VENV) outputs .pytest_cache .ruff_cache

@@ -13,8 +13,12 @@ import torch
 from torch.autograd.functional import jacobian
 
 from aesplat.geometry import (
+    DEFAULT_FOV,
     covariance_from_scale_rot,
+    focal_to_fov,
+    fov_to_focal,
     homogeneous_to_translation,
+    intrinsics_from_fov,
     matrix_to_quat,
     quat_to_matrix,
     rot6d_to_matrix,
@@ -187,3 +191,14 @@ def test_homogeneous_translation_at_a_vanishing_w():
     assert torch.isfinite(t4.grad).all()
     x = torch.tensor([0.5, -1.0, 2.0, -3.0], dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(homogeneous_to_translation, (x,))
+
+
+def test_fov_to_focal_at_the_camera_heads_bounds_has_the_analytic_derivative():
+    """The camera head keeps the FOV in [10°, 160°]; d/dfov 0.5 / tan(fov / 2) = -1 / (4 sin²(fov / 2))."""
+    fov = torch.tensor([math.radians(10.0), DEFAULT_FOV, math.radians(160.0)], dtype=torch.float64)
+    jac = jacobian(fov_to_focal, fov).diagonal()
+    torch.testing.assert_close(jac, -0.25 / torch.sin(0.5 * fov) ** 2, rtol=1e-12, atol=0)
+    fov32 = fov.float().requires_grad_(True)
+    intrinsics_from_fov(fov32).sum().backward()
+    assert torch.isfinite(fov32.grad).all()
+    assert torch.autograd.gradcheck(focal_to_fov, (fov_to_focal(fov).detach().requires_grad_(True),))
