@@ -179,7 +179,8 @@ def test_write_report_files(tmp_path):
 # ----------------------------------------------------------------------------------------------- command line
 
 
-def test_bench_command_end_to_end(tmp_path):
+def test_bench_command_end_to_end(tmp_path, pretend_gsplat):
+    """On a (pretended) GPU node with `--device cpu`: the CPU tensors are rendered by the torch backend."""
     from aesplat.data import convert_dataset, generate_dataset
 
     generate_dataset(tmp_path / "src", scenes=1, test_scenes=2, frames=10, height=32, width=40, seed=0)
@@ -187,12 +188,13 @@ def test_bench_command_end_to_end(tmp_path):
     ckpt = write_tiny_checkpoint(tmp_path / "run", data_root=str(tmp_path / "shards"), image_size=SIZE)
     assert main(["--ckpt", str(ckpt), "--knobs", "render_size,min_opacity", "--render-scales", "1",
                  "--min-opacities", "0.5", "--scenes", "1", "--repeats", "1", "--warmup", "0",
-                 "--process-warmup", "0", "--no-progress"]) == 0  # fmt: skip
+                 "--process-warmup", "0", "--no-progress", "--device", "cpu"]) == 0  # fmt: skip
     out = tmp_path / "run" / "bench"  # the default: next to the run
     rows = json.loads((out / "bench.json").read_text())["rows"]
     labels = [(r["knob"], r["label"]) for r in rows]
     assert labels == [("render_size", f"{SIZE} px"), ("min_opacity", "≥ 0"), ("min_opacity", "≥ 0.5")]
     assert all(not r["skipped"] for r in rows) and rows[0]["baseline"] and rows[1]["baseline"]
+    assert {r["setting"]["backend"] for r in rows} == {"torch"}
     assert rows[0]["psnr"] == rows[1]["psnr"] and rows[2]["gaussians"] <= rows[1]["gaussians"]
     assert (out / "accuracy_vs_time.png").is_file() and (out / "bench.csv").is_file()
     with pytest.raises(SystemExit, match="no shards"):

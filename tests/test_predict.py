@@ -199,6 +199,14 @@ def test_predict_writes_every_output(tiny_ckpt, tmp_path):
     )
 
 
+def test_predict_on_cpu_renders_with_torch_on_a_gsplat_machine(tiny_ckpt, tmp_path, pretend_gsplat):
+    """`--device cpu` on a GPU node: the default backend "auto" follows the CPU tensors to the torch backend."""
+    images = [save_png(tmp_path / f"{i}.png", np.full((28, 28, 3), 60 * i + 40)) for i in range(2)]
+    args = ["--ckpt", str(tiny_ckpt), "--out", str(tmp_path / "out"), "--novel-frames", "2", "--no-progress"]
+    assert main([*args, "--device", "cpu", *map(str, images)]) == 0
+    assert (tmp_path / "out" / "renders" / "01_1.png").is_file()
+
+
 def test_predict_rejects_bad_input(tiny_ckpt, tmp_path):
     good = save_png(tmp_path / "good.png", np.zeros((28, 28, 3)))
     bad = tmp_path / "broken.jpg"
