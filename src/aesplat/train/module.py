@@ -115,6 +115,11 @@ class AESplatModule(LightningModule):
         if datamodule is not None and hasattr(datamodule, "set_global_step"):
             datamodule.set_global_step(self.global_step)
 
+    def on_fit_start(self) -> None:
+        warning = NetConfig(**self.hparams["net"]).random_backbone_warning()
+        if warning:
+            rank_zero_warn(warning)
+
     def on_train_batch_start(self, batch: BatchedExample, batch_idx: int) -> None:
         self._sync_curriculum()
 
