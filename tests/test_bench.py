@@ -199,3 +199,30 @@ def test_bench_command_end_to_end(tmp_path, pretend_gsplat):
     assert (out / "accuracy_vs_time.png").is_file() and (out / "bench.csv").is_file()
     with pytest.raises(SystemExit, match="no shards"):
         main(["--ckpt", str(ckpt), "--data-root", str(tmp_path / "empty"), "--no-progress"])
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_bench_command_on_cuda(tmp_path):
+    """`aesplat bench --device cuda`: gsplat (if installed) and torch backends, fp32 and bf16, all measured."""
+    from aesplat.data import convert_dataset, generate_dataset
+    from aesplat.render import gsplat_available
+
+    generate_dataset(tmp_path / "src", scenes=1, test_scenes=2, frames=10, height=32, width=40, seed=0)
+    convert_dataset(tmp_path / "src", tmp_path / "shards", size=SIZE)
+    ckpt = write_tiny_checkpoint(tmp_path / "run", data_root=str(tmp_path / "shards"), image_size=SIZE)
+    assert main(["--ckpt", str(ckpt), "--device", "cuda", "--knobs", "backend,precision", "--scenes", "2",
+                 "--repeats", "2", "--warmup", "1", "--process-warmup", "1", "--no-progress"]) == 0  # fmt: skip
+    saved = json.loads((tmp_path / "run" / "bench" / "bench.json").read_text())
+    assert saved["meta"]["device"].startswith("cuda")
+    rows = {(r["knob"], r["label"]): r for r in saved["rows"]}
+    backends = {"gsplat", "torch"} if gsplat_available() else {"torch"}
+    assert {label for knob, label in rows if knob == "backend"} == backends
+    assert {label for knob, label in rows if knob == "precision"} == {"fp32", "bf16"}
+    for (knob, label), row in rows.items():
+        if (knob, label) == ("precision", "bf16") and not torch.cuda.is_bf16_supported():
+            continue
+        assert not row["skipped"], (knob, label, row["skipped"])
+        assert math.isfinite(row["psnr"]) and row["total_ms"] > 0, (knob, label)
+    if gsplat_available():  # the same Gaussians through both rasterizers
+        assert abs(rows[("backend", "gsplat")]["psnr"] - rows[("backend", "torch")]["psnr"]) < 0.5
