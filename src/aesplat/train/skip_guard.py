@@ -128,14 +128,18 @@ class SkipGuard:
             return
         what = (f"{self.consecutive} steps in a row" if in_a_row
                 else f"{in_window} of the last {len(self.recent)} steps")  # fmt: skip
+        origin = (
+            f"Where it comes from: {self.first_report}"
+            if self.first_report
+            else "The first skipped step was not re-run under anomaly detection (model.optim.anomaly_report)."
+        )
         raise PersistentNonFiniteSteps(
             f"training stopped at step {step}: {what} were skipped because their loss or gradients were not "
-            f"finite ({self.total} skipped in all). A run that skips this often is broken, not unlucky: the "
-            f"updates it still makes do not train the model. Limits: more than {cfg.max_skipped_fraction:.0%} "
-            f"of the last {cfg.skip_window} steps (model.optim.max_skipped_fraction, model.optim.skip_window) "
-            f"or {cfg.max_consecutive_skips} in a row (model.optim.max_consecutive_skips); 0 disables either. "
-            + (f"Where it comes from: {self.first_report}" if self.first_report else
-               "Set model.optim.anomaly_report: true to have the first skipped step explained.")
+            f"finite ({self.total} skipped in all). A run that skips this often is broken, not unlucky: its "
+            f"loss curve and checkpoints no longer mean what they seem. Limits: more than "
+            f"{cfg.max_skipped_fraction:.0%} of the last {cfg.skip_window} steps "
+            f"(model.optim.max_skipped_fraction, model.optim.skip_window) or {cfg.max_consecutive_skips} in a "
+            f"row (model.optim.max_consecutive_skips); 0 disables either. {origin}"
         )  # fmt: skip
 
     def state_dict(self) -> dict:
@@ -180,14 +184,16 @@ def explain_non_finite_step(
     params = [p for p in model.parameters() if p.requires_grad]
     device = params[0].device if params else torch.device("cpu")
     cuda = [device.index or 0] if device.type == "cuda" else []
+    caught: list[warnings.WarningMessage] = []
     try:
-        with torch.random.fork_rng(devices=cuda), warnings.catch_warnings(record=True) as caught:
+        with torch.random.fork_rng(devices=cuda), warnings.catch_warnings(record=True) as recorded:
             warnings.simplefilter("always")
+            caught = recorded
             with torch.autograd.detect_anomaly(check_nan=True):
                 loss = rerun()
                 report.loss_finite = bool(torch.isfinite(loss.detach()).all())
                 torch.autograd.grad(loss, params, allow_unused=True)
-    except RuntimeError as err:
+    except Exception as err:  # a diagnosis must not end the run itself (a compiled region, memory, ...)
         found = re.search(r"Function '(\w+)' returned nan", str(err))
         if found:
             report.operation = found.group(1)
