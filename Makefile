@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test test-slow test-torch-floor lint format demo bench clean
+.PHONY: venv test test-slow test-torch-floor test-gpu lint format demo bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -45,6 +45,11 @@ $(FLOOR_STAMP): pyproject.toml
 test-torch-floor: $(FLOOR_STAMP)
 	$(FLOOR_PY) -c "import torch; print('torch', torch.__version__)"
 	$(FLOOR_PY) -m pytest -q $(FLOOR_TESTS)
+# `make test-gpu` (on a CUDA machine): the `gpu`-marked tests, with gsplat from the `cuda` extra (it compiles its
+# kernels on first import, about a minute). Each test says why when it skips (no CUDA, no gsplat, no bf16).
+test-gpu: $(STAMP)
+	$(PIP) install --quiet -e ".[dev,cuda]"
+	$(PY) -m pytest -q -rs -m gpu
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

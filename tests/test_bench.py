@@ -179,7 +179,8 @@ def test_write_report_files(tmp_path):
 # ----------------------------------------------------------------------------------------------- command line
 
 
-def test_bench_command_end_to_end(tmp_path):
+def test_bench_command_end_to_end(tmp_path, pretend_gsplat):
+    """On a (pretended) GPU node with `--device cpu`: the CPU tensors are rendered by the torch backend."""
     from aesplat.data import convert_dataset, generate_dataset
 
     generate_dataset(tmp_path / "src", scenes=1, test_scenes=2, frames=10, height=32, width=40, seed=0)
@@ -187,13 +188,41 @@ def test_bench_command_end_to_end(tmp_path):
     ckpt = write_tiny_checkpoint(tmp_path / "run", data_root=str(tmp_path / "shards"), image_size=SIZE)
     assert main(["--ckpt", str(ckpt), "--knobs", "render_size,min_opacity", "--render-scales", "1",
                  "--min-opacities", "0.5", "--scenes", "1", "--repeats", "1", "--warmup", "0",
-                 "--process-warmup", "0", "--no-progress"]) == 0  # fmt: skip
+                 "--process-warmup", "0", "--no-progress", "--device", "cpu"]) == 0  # fmt: skip
     out = tmp_path / "run" / "bench"  # the default: next to the run
     rows = json.loads((out / "bench.json").read_text())["rows"]
     labels = [(r["knob"], r["label"]) for r in rows]
     assert labels == [("render_size", f"{SIZE} px"), ("min_opacity", "≥ 0"), ("min_opacity", "≥ 0.5")]
     assert all(not r["skipped"] for r in rows) and rows[0]["baseline"] and rows[1]["baseline"]
+    assert {r["setting"]["backend"] for r in rows} == {"torch"}
     assert rows[0]["psnr"] == rows[1]["psnr"] and rows[2]["gaussians"] <= rows[1]["gaussians"]
     assert (out / "accuracy_vs_time.png").is_file() and (out / "bench.csv").is_file()
     with pytest.raises(SystemExit, match="no shards"):
         main(["--ckpt", str(ckpt), "--data-root", str(tmp_path / "empty"), "--no-progress"])
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_bench_command_on_cuda(tmp_path):
+    """`aesplat bench --device cuda`: gsplat (if installed) and torch backends, fp32 and bf16, all measured."""
+    from aesplat.data import convert_dataset, generate_dataset
+    from aesplat.render import gsplat_available
+
+    generate_dataset(tmp_path / "src", scenes=1, test_scenes=2, frames=10, height=32, width=40, seed=0)
+    convert_dataset(tmp_path / "src", tmp_path / "shards", size=SIZE)
+    ckpt = write_tiny_checkpoint(tmp_path / "run", data_root=str(tmp_path / "shards"), image_size=SIZE)
+    assert main(["--ckpt", str(ckpt), "--device", "cuda", "--knobs", "backend,precision", "--scenes", "2",
+                 "--repeats", "2", "--warmup", "1", "--process-warmup", "1", "--no-progress"]) == 0  # fmt: skip
+    saved = json.loads((tmp_path / "run" / "bench" / "bench.json").read_text())
+    assert saved["meta"]["device"].startswith("cuda")
+    rows = {(r["knob"], r["label"]): r for r in saved["rows"]}
+    backends = {"gsplat", "torch"} if gsplat_available() else {"torch"}
+    assert {label for knob, label in rows if knob == "backend"} == backends
+    assert {label for knob, label in rows if knob == "precision"} == {"fp32", "bf16"}
+    for (knob, label), row in rows.items():
+        if (knob, label) == ("precision", "bf16") and not torch.cuda.is_bf16_supported():
+            continue
+        assert not row["skipped"], (knob, label, row["skipped"])
+        assert math.isfinite(row["psnr"]) and row["total_ms"] > 0, (knob, label)
+    if gsplat_available():  # the same Gaussians through both rasterizers
+        assert abs(rows[("backend", "gsplat")]["psnr"] - rows[("backend", "torch")]["psnr"]) < 0.5

@@ -622,7 +622,7 @@ def evaluation_scenes(loaded, data_root: str | None, image_size: int | None, lim
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``aesplat bench`` (see ``--help``)."""
     from .predict import load_checkpoint, resolve_device
-    from .render import gsplat_available
+    from .render import get_backend
 
     args = build_parser().parse_args(argv)
     if args.threads:
@@ -636,9 +636,9 @@ def main(argv: list[str] | None = None) -> int:
     if not scenes:
         raise SystemExit("aesplat bench: the test split holds no scenes")
     native = scenes[0].target.images.shape[-1]
-    backends = args.backends or (
-        ["gsplat", "torch"] if gsplat_available() and device.type == "cuda" else ["torch"]
-    )
+    # The scenes' tensors are float32 on `device`: "auto" picks what a render of them would use.
+    auto = get_backend("auto", device)[0]
+    backends = args.backends or (["gsplat", "torch"] if auto == "gsplat" else ["torch"])
     baseline, points = default_sweep(
         loaded.sh_degree, native, backends=backends, input_scales=args.input_scales,
         render_scales=args.render_scales, keep_fractions=args.keep_fractions, min_opacities=args.min_opacities,

@@ -1,7 +1,12 @@
 """Patch encoder: shapes, and loading local timm-format and original-DINOv2-format checkpoints by name."""
 
+import math
+
+import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
+from PIL import Image
 
 from aesplat.model import (
     EncoderConfig,
@@ -66,6 +71,33 @@ def test_encoder_output_shape_and_normalisation():
     tokens = enc(torch.rand(2, 3, 28, 42))
     assert tokens.shape == (2, 2 * 3, DIM)
     torch.testing.assert_close(tokens.mean(-1), torch.zeros(2, 6), atol=1e-5, rtol=0)  # final LayerNorm
+
+
+def pil_bicubic(grid: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Reference resize of a position grid [1, g·g, D] -> [1, h·w, D], one channel at a time with PIL's bicubic
+    (antialiased when shrinking; PyTorch's ``antialias=True`` follows PIL, which VGGT and timm rely on)."""
+    g = math.isqrt(grid.shape[1])
+    channels = grid[0].reshape(g, g, -1).permute(2, 0, 1).double().numpy().astype(np.float32)
+    out = [np.asarray(Image.fromarray(c, mode="F").resize((w, h), Image.BICUBIC)) for c in channels]
+    return torch.from_numpy(np.stack(out, -1)).reshape(1, h * w, -1)
+
+
+@pytest.mark.parametrize("side", [224, 280, 700])
+def test_position_grid_is_resized_as_vggt_dinov2_does(side):
+    """DINOv2's 37 x 37 grid (518 px) at the training resolution 224 px (16 x 16), and up to 50 x 50."""
+    enc = PatchEncoder(EncoderConfig(dim=32, depth=1, num_heads=2, pos_grid=37))
+    n = side // 14
+    pos = enc._pos_embed(n, n)
+    assert torch.equal(pos[:, 0], enc.pos_embed[:, 0])  # the class token's position is not resized
+    reference = pil_bicubic(enc.pos_embed[:, 1:].detach(), n, n)
+    torch.testing.assert_close(pos[:, 1:].detach(), reference, rtol=0, atol=2e-5 * reference.abs().max().item())
+    # Without antialiasing the 224 px grid is measurably different (a few percent): the test can tell.
+    if side == 224:
+        grid = enc.pos_embed[:, 1:].detach().reshape(1, 37, 37, -1).permute(0, 3, 1, 2)
+        plain = F.interpolate(grid, size=(n, n), mode="bicubic", align_corners=False)
+        plain = plain.permute(0, 2, 3, 1).reshape(1, n * n, -1)
+        assert (plain - reference).abs().max() > 0.1 * reference.abs().max()
+    assert torch.equal(enc._pos_embed(37, 37), enc.pos_embed)  # the native grid is used as it is
 
 
 def test_load_timm_checkpoint(tmp_path):

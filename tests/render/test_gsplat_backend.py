@@ -5,8 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from aesplat.render import fold_cameras, gsplat_available, render
-from aesplat.render.interface import RenderSettings
+from aesplat.render import RenderSettings, fold_cameras, gsplat_available, render
 from aesplat.render.torch_backend import render_torch
 from aesplat.types import Gaussians
 

@@ -27,12 +27,39 @@ def _inputs(n=20, b=1, v=2, sh_degree=1, seed=0):
 
 def test_registry_and_auto_choice():
     assert set(BACKENDS) == {"torch", "gsplat"}
-    name, fn = get_backend("auto")
+    name, fn = get_backend("auto", "cpu")
+    assert name == "torch" and callable(fn)
+    name, _ = get_backend("auto", "cuda")
     assert name == ("gsplat" if gsplat_available() else "torch")
-    assert callable(fn)
-    assert get_backend("torch")[0] == "torch"
+    assert get_backend("torch", "cuda")[0] == "torch"
     with pytest.raises(ValueError, match="unknown render backend"):
-        get_backend("optix")
+        get_backend("optix", "cpu")
+
+
+def test_auto_follows_the_tensors_device_and_dtype(pretend_gsplat):
+    # On a GPU node, "auto" is gsplat only for float32 CUDA tensors; the working dtype decides (bf16 inputs
+    # are rendered in float32, float64 inputs in float64, which gsplat cannot do).
+    assert get_backend("auto", torch.device("cuda", 0), torch.float32)[0] == "gsplat"
+    assert get_backend("auto", "cuda", torch.float64)[0] == "torch"
+    assert get_backend("auto", "cpu", torch.float32)[0] == "torch"
+    assert get_backend("auto", "cpu", torch.float64)[0] == "torch"
+    assert get_backend("gsplat", "cpu")[0] == "gsplat", "an explicit name is taken as given"
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16])
+def test_auto_renders_cpu_tensors_with_torch_on_a_gsplat_machine(pretend_gsplat, dtype):
+    g, ext, intr = _inputs()
+    g = g.to(dtype=dtype)
+    out, stats = render_with_stats(g, ext.to(dtype), intr.to(dtype), 8, 8, backend="auto")
+    assert stats.backend == "torch"
+    reference = render(g, ext.to(dtype), intr.to(dtype), 8, 8, backend="torch")
+    assert torch.equal(out.color, reference.color)
+
+
+def test_explicit_gsplat_on_cpu_tensors_is_a_clear_error(pretend_gsplat):
+    g, ext, intr = _inputs()
+    with pytest.raises(ValueError, match=r"'gsplat' needs CUDA tensors, got tensors on cpu.*backend='torch'"):
+        render(g, ext, intr, 8, 8, backend="gsplat")
 
 
 def test_output_types_and_shapes():

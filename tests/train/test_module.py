@@ -1,5 +1,6 @@
 """The LightningModule on real (tiny) data: NaN-safe steps, overfitting one batch, exact resume."""
 
+import warnings
 from pathlib import Path
 
 import lightning as L
@@ -81,6 +82,23 @@ def test_nan_gradient_step_is_skipped_bit_identically(smoke_shards, tmp_path):
     assert poison.step == 2, "the skipped batch still counts as a trainer step"
     # The step after the skipped one trains normally.
     assert not all(torch.equal(a, b) for a, b in zip(params_after, module.model.parameters()))
+
+
+@pytest.mark.parametrize("size", ["base", "large"])
+def test_fit_warns_when_a_paper_scale_network_has_no_pretrained_weights(size):
+    """The warning `aesplat fit` gives (checked on the tiny module, whose net settings say `size`)."""
+    module = make_module()
+    module.hparams["net"]["size"] = size
+    with pytest.warns(UserWarning, match=rf"`{size}` network starts from a RANDOM backbone") as caught:
+        module.on_fit_start()
+    message = str(caught[0].message)
+    assert "builds on VGGT" in message and "no pose learning in 600 steps" in message
+    assert "--model.net.weights" in message and "Pretrained weights" in message
+    for net in ({"size": size, "weights": "/data/vggt_1B.pt"}, {"size": "tiny", "weights": None}):
+        module.hparams["net"].update(net)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            module.on_fit_start()  # no warning with weights, nor for the CPU-sized network
 
 
 def test_overfitting_one_batch_raises_psnr(smoke_shards):

@@ -7,6 +7,7 @@ DINOv2 release, which differs only in a few names), so a local checkpoint of eit
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -30,6 +31,24 @@ class EncoderConfig:
     mlp_ratio: float = 4.0
     num_registers: int = 0  # DINOv2 "reg4" models have 4
     pos_grid: int = 37  # learned position grid (DINOv2: 518 / 14); interpolated to the input grid
+
+
+def resize_position_grid(patch_pos: Tensor, size: tuple[int, int]) -> Tensor:
+    """A square grid of learned positions [1, g·g, D] -> [1, h·w, D] for an h x w patch grid.
+
+    Bicubic with antialiasing, computed in float32, to the output size (not a scale factor): what VGGT's
+    DINOv2 does (``interpolate_antialias=True, interpolate_offset=0.0``) and timm's
+    ``resample_abs_pos_embed(..., antialias=True)``, so pretrained weights see the positions they were trained
+    with at every resolution (224² from DINOv2's 37 x 37 grid differs by a few percent without antialiasing).
+    """
+    g = math.isqrt(patch_pos.shape[1])
+    if g * g != patch_pos.shape[1]:
+        raise ValueError(f"position embedding has {patch_pos.shape[1]} patch positions, not a square grid")
+    if (g, g) == tuple(size):
+        return patch_pos
+    grid = patch_pos.float().reshape(1, g, g, -1).permute(0, 3, 1, 2)  # [1, D, g, g]
+    grid = F.interpolate(grid, size=size, mode="bicubic", antialias=True, align_corners=False)
+    return grid.permute(0, 2, 3, 1).reshape(1, size[0] * size[1], -1).to(patch_pos.dtype)
 
 
 class PatchEncoder(nn.Module):
@@ -59,13 +78,8 @@ class PatchEncoder(nn.Module):
 
     def _pos_embed(self, h: int, w: int) -> Tensor:
         """Position embedding for an h x w patch grid: [1, 1 + h·w, dim] (class token first)."""
-        g = self.cfg.pos_grid
         cls_pos, patch_pos = self.pos_embed[:, :1], self.pos_embed[:, 1:]
-        if (h, w) != (g, g):
-            grid = patch_pos.reshape(1, g, g, -1).permute(0, 3, 1, 2)
-            grid = F.interpolate(grid, size=(h, w), mode="bicubic", align_corners=False)
-            patch_pos = grid.permute(0, 2, 3, 1).reshape(1, h * w, -1)
-        return torch.cat([cls_pos, patch_pos], dim=1)
+        return torch.cat([cls_pos, resize_position_grid(patch_pos, (h, w))], dim=1)
 
     def forward(self, images: Tensor) -> Tensor:
         """images [B, 3, H, W] in [0, 1] -> patch tokens [B, h·w, dim]."""

@@ -281,3 +281,19 @@ class NetConfig:
     def build(self) -> AESplatModel:
         return build_model(size=self.size, appearance=self.appearance, sh_degree=self.sh_degree, near=self.near,
                            far=self.far, weights=self.weights, **self.options)  # fmt: skip
+
+    def random_backbone_warning(self) -> str | None:
+        """What `aesplat fit` says when a paper-scale network (base, large) has no weights to start from."""
+        if self.size not in ("base", "large") or self.weights:
+            return None
+        lines = [
+            f"The `{self.size}` network starts from a RANDOM backbone: model.net.weights is not set.",
+            "The paper builds on VGGT (a pretrained DINOv2 encoder and geometry transformer). From a random",
+            "backbone, pose-free training measured no pose learning in 600 steps (conf/re10k.yaml, one H100).",
+            "Give a local checkpoint, e.g. VGGT-1B (facebook/VGGT-1B) or DINOv2 (facebookresearch/dinov2):",
+            "  --model.net.weights /path/to/vggt_1B.pt "
+            "--model.net.options '{encoder_registers: 4, num_register_tokens: 4}'",
+            "README section 'Pretrained weights' says where they come from and which formats load.",
+        ]
+        rule = "=" * 100
+        return "\n".join(["", rule, *lines, rule])

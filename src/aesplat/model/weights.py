@@ -13,10 +13,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .encoder import PatchEncoder
+from .encoder import PatchEncoder, resize_position_grid
 from .transformer import GeometryTransformer
 
 
@@ -76,15 +75,8 @@ def convert_encoder_state_dict(state: dict[str, Tensor]) -> tuple[dict[str, Tens
 
 
 def _resize_pos_embed(pos: Tensor, grid: int) -> Tensor:
-    """Position embedding [1, 1 + g·g, D] from a checkpoint -> [1, 1 + grid·grid, D] (bicubic)."""
-    g = math.isqrt(pos.shape[1] - 1)
-    if g * g != pos.shape[1] - 1:
-        raise ValueError(f"checkpoint pos_embed has {pos.shape[1] - 1} patch positions, not a square grid")
-    if g == grid:
-        return pos
-    patch = pos[:, 1:].reshape(1, g, g, -1).permute(0, 3, 1, 2).float()
-    patch = F.interpolate(patch, size=(grid, grid), mode="bicubic", align_corners=False)
-    return torch.cat([pos[:, :1], patch.permute(0, 2, 3, 1).reshape(1, grid * grid, -1).to(pos.dtype)], 1)
+    """Position embedding [1, 1 + g·g, D] of a checkpoint -> [1, 1 + grid·grid, D], as the encoder resizes."""
+    return torch.cat([pos[:, :1], resize_position_grid(pos[:, 1:], (grid, grid))], dim=1)
 
 
 def _read(path: str | Path, what: str) -> dict[str, Tensor]:

@@ -24,8 +24,8 @@ from torch import Tensor
 from aesplat.geometry import covariance_from_scale_rot, eval_sh, invert_pose, num_sh_coeffs, safe_normalize
 from aesplat.types import Gaussians, RenderOutput
 
-from .interface import RenderSettings, RenderStats
 from .projection import ALPHA_MIN
+from .settings import RenderSettings, RenderStats
 
 REFERENCE_FOCAL = 1.0  # normalised focal length of the fixed reference camera
 REFERENCE_CENTER = 0.5
@@ -117,11 +117,12 @@ def render_gsplat(
     settings: RenderSettings,
 ) -> tuple[RenderOutput, RenderStats]:
     """gsplat backend of ``render`` (float32 only, CUDA only)."""
-    gsplat = _import_gsplat()
-    if not gaussians.means.is_cuda:
+    if not gaussians.means.is_cuda:  # checked first: the fix is the same whether or not gsplat is installed
         raise ValueError(
-            "render backend 'gsplat' needs CUDA tensors; move the inputs to the GPU or use 'torch'"
+            f"render backend 'gsplat' needs CUDA tensors, got tensors on {gaussians.means.device}; move the "
+            "inputs to the GPU, or use backend='torch' (or 'auto', which picks by the tensors' device)"
         )
+    gsplat = _import_gsplat()
     b, n = gaussians.means.shape[:2]
     v = extrinsics.shape[1]
     g32 = gaussians.to(dtype=torch.float32)

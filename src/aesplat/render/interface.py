@@ -4,14 +4,14 @@
 is off inside), resolves the background and the SH degree actually in use, and hands over to a backend:
 
     BACKENDS = {"torch": render_torch, "gsplat": render_gsplat}
-    get_backend("auto")  # gsplat when CUDA is available and gsplat imports, else torch
+    get_backend("auto", device, dtype)  # per call: gsplat for float32 CUDA tensors with gsplat, else torch
 """
 
 from __future__ import annotations
 
 import importlib.util
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import fields
 
 import torch
 from torch import Tensor
@@ -20,55 +20,7 @@ from aesplat.geometry import sh_degree_from_coeffs
 from aesplat.types import Gaussians, RenderOutput
 
 from .projection import active_sh_degree
-
-
-@dataclass(frozen=True)
-class RenderSettings:
-    """Options every backend understands; pass them to ``render`` as keyword arguments.
-
-    tile_size     screen tile side in pixels (torch backend: 8 or 16 are good; gsplat: 16)
-    chunk         Gaussians per compositing step of each tile list (torch backend)
-    max_elements  bound on tiles x pixels x chunk per step: the torch backend's memory budget
-                  (about 60 bytes per element in the backward)
-    near, far     depth cull planes (camera z)
-    eps2d         low-pass added to the 2D covariance
-    sh_tol        bands whose coefficients are all within this of zero are skipped
-    compile       torch backend: run the per-chunk maths through ``torch.compile`` (slow first call)
-    """
-
-    tile_size: int = 8
-    chunk: int = 32
-    max_elements: int = 1 << 22
-    near: float = 0.01
-    far: float = 1e10
-    eps2d: float = 0.3
-    sh_tol: float = 0.0
-    compile: bool = False
-
-    def __post_init__(self) -> None:
-        if self.tile_size < 1 or self.chunk < 1 or self.max_elements < 1:
-            raise ValueError(f"tile_size, chunk and max_elements must be positive: {self}")
-        if not 0.0 < self.near < self.far:
-            raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
-
-
-@dataclass(frozen=True)
-class RenderStats:
-    """What a render call did: the "effects on demand" accounting.
-
-    Counts are over (camera, Gaussian) pairs, in the order the culls run (a pair is counted once).
-    """
-
-    backend: str
-    pairs: int  # B * V * N
-    culled_transparent: int  # opacity < 1/255
-    culled_depth: int  # behind the camera, at its centre, on or before the near plane, beyond far
-    culled_footprint: int  # degenerate 2D covariance, or bounding box off the image
-    visible: int  # pairs that reached sorting and compositing
-    intersections: int  # (tile, Gaussian) pairs composited (torch backend; -1 where unknown)
-    sh_degree_requested: int
-    sh_degree_active: int  # bands actually evaluated (0: no SH basis at all)
-
+from .settings import RenderSettings, RenderStats
 
 Backend = Callable[..., tuple[RenderOutput, RenderStats]]
 
@@ -93,10 +45,18 @@ def gsplat_available() -> bool:
     return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
 
 
-def get_backend(name: str = "auto") -> tuple[str, Backend]:
-    """Resolve a backend name ("torch", "gsplat" or "auto") to (resolved name, function)."""
+def get_backend(
+    name: str, device: torch.device | str, dtype: torch.dtype = torch.float32
+) -> tuple[str, Backend]:
+    """Resolve a backend name ("torch", "gsplat" or "auto") for tensors on ``device`` computed in ``dtype``.
+
+    "auto" follows the tensors, call by call: gsplat for float32 CUDA tensors when gsplat imports, torch for
+    everything else (CPU tensors, float64, a machine without gsplat). An explicit name is taken as given.
+    Returns (resolved name, function).
+    """
     if name == "auto":
-        name = "gsplat" if gsplat_available() else "torch"
+        on_cuda = torch.device(device).type == "cuda"
+        name = "gsplat" if on_cuda and dtype == torch.float32 and gsplat_available() else "torch"
     if name not in BACKENDS:
         raise ValueError(f"unknown render backend {name!r}; choose one of {sorted(BACKENDS) + ['auto']}")
     return name, BACKENDS[name]
@@ -148,7 +108,6 @@ def render_with_stats(
         raise TypeError(f"unknown render option(s) {unknown}; known options: {sorted(known)}")
     settings = RenderSettings(**options)
     _check_cameras(gaussians, extrinsics, intrinsics, height, width)
-    name, fn = get_backend(backend)
 
     available = sh_degree_from_coeffs(gaussians.sh.shape[2])
     requested = available if sh_degree is None else int(sh_degree)
@@ -161,6 +120,7 @@ def render_with_stats(
     tensors = [gaussians.means, extrinsics, intrinsics] + ([] if background is None else [background])
     dtype = torch.float64 if any(torch.as_tensor(t).dtype == torch.float64 for t in tensors) else torch.float32
     device = gaussians.means.device
+    name, fn = get_backend(backend, device, dtype)
     with torch.autocast(device_type=device.type, enabled=False):
         g = gaussians.to(dtype=dtype)
         bg = _background(background, g.batch_size, dtype, device)
@@ -192,7 +152,9 @@ def render(
     is seen) and alpha [B, V, 1, H, W]. Differentiable with respect to the Gaussians, both camera matrices
     and the background. Computes in float32 (float64 when given float64), whatever the autocast state.
     ``sh_degree`` caps the SH bands used (default: all the Gaussians carry). ``options`` are the fields of
-    ``RenderSettings`` (tile_size, chunk, max_elements, near, far, eps2d, sh_tol, compile).
+    ``RenderSettings`` (tile_size, chunk, max_elements, near, far, eps2d, sh_tol, compile). ``backend``
+    "auto" is resolved on every call from the inputs (see ``get_backend``): gsplat only for float32 CUDA
+    tensors with gsplat installed.
     """
     out, _ = render_with_stats(
         gaussians, extrinsics, intrinsics, height, width,

@@ -7,8 +7,8 @@ from torch import Tensor
 from aesplat.types import Gaussians, RenderOutput
 
 from .composite import composite
-from .interface import RenderSettings, RenderStats
 from .projection import project_gaussians
+from .settings import RenderSettings, RenderStats
 from .tiles import bin_gaussians
 
 DEPTH_EPS = 1e-10  # gsplat's clamp of alpha when normalising the expected depth

@@ -6,17 +6,15 @@ cameras -> photometric loss against the real target images. Ground-truth poses a
 
 Optimization is manual so that a step with a non-finite loss or gradient is visibly skipped (parameters and
 AdamW state untouched, counted, logged) while the trainer's step counter, the schedule and the curriculum
-advance with the batch.
+advance with the batch; ``SkipGuard`` explains the first such step and stops a run whose skips are not rare.
 """
 
 from __future__ import annotations
 
-import random
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from lightning.pytorch import LightningModule
 from lightning.pytorch.loggers import WandbLogger
@@ -31,7 +29,9 @@ from aesplat.types import BatchedExample, RenderOutput
 from .evaluation import save_image, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, maybe_lpips
 from .metrics import overlap_bucket, psnr, relative_pose_errors, ssim
-from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates, discard_gradients
+from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates
+from .rng import restore_rng_state, rng_state
+from .skip_guard import SkipGuard
 
 
 @dataclass
@@ -84,7 +84,7 @@ class AESplatModule(LightningModule):
         self.loss_fn = PhotometricLoss(loss, lpips)
         if self.lpips_unavailable and loss.lpips_weight == 0:
             rank_zero_warn(f"LPIPS metric unavailable: {self.lpips_unavailable}")
-        self.skipped_steps = 0
+        self.skip_guard = SkipGuard(optim)
         self.val_means = torch.nn.ModuleDict({k: MeanMetric() for k in _METRIC_KEYS})
         self._test_rows: list[dict] = []
 
@@ -115,11 +115,16 @@ class AESplatModule(LightningModule):
         if datamodule is not None and hasattr(datamodule, "set_global_step"):
             datamodule.set_global_step(self.global_step)
 
+    def on_fit_start(self) -> None:
+        warning = NetConfig(**self.hparams["net"]).random_backbone_warning()
+        if warning:
+            rank_zero_warn(warning)
+
     def on_train_batch_start(self, batch: BatchedExample, batch_idx: int) -> None:
         self._sync_curriculum()
 
     def training_step(self, batch: BatchedExample, batch_idx: int) -> Tensor:
-        optimizer = self.optimizers()
+        step, optimizer = self.global_step, self.optimizers()
         scheduler = self.lr_schedulers()
         for name, lr in current_learning_rates(optimizer.optimizer).items():
             self.log(f"lr/{name}", lr, on_step=True, on_epoch=False)
@@ -133,10 +138,11 @@ class AESplatModule(LightningModule):
         non_finite = self.trainer.strategy.reduce(
             torch.tensor(float(not finite), device=self.device), reduce_op="sum"
         )
-        if non_finite.item() > 0:
-            discard_gradients(optimizer.optimizer)
-            self.skipped_steps += 1
-            rank_zero_warn(f"step {self.global_step}: non-finite loss or gradient, update skipped")
+        skipped = non_finite.item() > 0
+        if skipped:  # drop the gradients (the step below then changes nothing); explain the first such step
+            rerun = lambda: self.loss_fn(self(batch)[1].color, batch.target.images)["total"]  # noqa: E731
+            self.skip_guard.skip(step, self.model, optimizer.optimizer, rerun,
+                                 self.trainer.default_root_dir, self.global_rank)  # fmt: skip
         optimizer.step()
         scheduler.step()
         self._sync_curriculum()  # so a stream started between steps (new epoch, resume) sees the same step
@@ -154,6 +160,7 @@ class AESplatModule(LightningModule):
         every = self.eval_cfg.log_images_every_n_steps
         if every > 0 and self.global_step % every == 0:
             self._log_images("train/images", batch, rendered)
+        self.skip_guard.record(step, skipped)  # stops the run when skipping is no longer rare
         return terms["total"].detach()
 
     def on_train_epoch_end(self) -> None:
@@ -226,6 +233,11 @@ class AESplatModule(LightningModule):
             print(f"wrote {len(rows)} scenes to {self.test_output_dir}: {summary['metrics']}")
 
     @property
+    def skipped_steps(self) -> int:
+        """Training steps skipped for a non-finite loss or gradient (checkpointed)."""
+        return self.skip_guard.total
+
+    @property
     def test_output_dir(self) -> Path:
         if self.eval_cfg.output_dir:
             return Path(self.eval_cfg.output_dir)
@@ -242,26 +254,16 @@ class AESplatModule(LightningModule):
     # ----------------------------------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["skipped_steps"] = self.skipped_steps
-        # Tensors and plain Python values only, so checkpoints load with torch.load(weights_only=True).
-        kind, keys, pos, has_gauss, gauss = np.random.get_state()  # noqa: NPY002 - the global state
-        checkpoint["rng"] = {
-            "torch": torch.get_rng_state(),
-            "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
-            "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss), float(gauss)],
-            "python": random.getstate(),
-        }
+        checkpoint["skip_guard"] = self.skip_guard.state_dict()
+        checkpoint["rng"] = rng_state()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        self.skipped_steps = int(checkpoint.get("skipped_steps", 0))
-        rng = checkpoint.get("rng")
+        self.skip_guard.load_state_dict(
+            checkpoint.get("skip_guard", {"total": checkpoint.get("skipped_steps", 0)})
+        )
         trainer = self._trainer  # None when loaded outside a Trainer (load_from_checkpoint)
-        if rng is not None and trainer is not None and trainer.training:
-            torch.set_rng_state(rng["torch"])
-            if rng["cuda"] and torch.cuda.is_available() and len(rng["cuda"]) == torch.cuda.device_count():
-                torch.cuda.set_rng_state_all(rng["cuda"])
-            kind, keys, pos, has_gauss, gauss = rng["numpy"]
-            np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, gauss))  # noqa: NPY002
-            random.setstate(rng["python"])
+        if checkpoint.get("rng") is not None and trainer is not None and trainer.training:
+            restore_rng_state(checkpoint["rng"])
 
     # ----------------------------------------------------------------------------------------- logging
     def _log_images(self, key: str, batch: BatchedExample, rendered: RenderOutput) -> None:

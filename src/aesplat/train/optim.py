@@ -1,9 +1,10 @@
-"""AdamW with named parameter groups, a warm-up + cosine schedule, and the non-finite step guard.
+"""AdamW with named parameter groups, a warm-up + cosine schedule, and the non-finite step check.
 
 Groups come from the model's ``named_parameter_groups()`` (keys ``appearance``, ``backbone``, ``rest``):
 ``appearance`` trains at its own learning rate (3e-4 in the paper), ``rest`` at the base rate, and a
 *pretrained* ``backbone`` at a fraction of it. Each group is split once more into a weight-decay part and a
 no-decay part (norms, biases, tokens), so every trainable parameter sits in exactly one optimizer group.
+When skipped steps stop being rare, ``skip_guard.SkipGuard`` ends the run.
 """
 
 from __future__ import annotations
@@ -32,6 +33,11 @@ class OptimConfig:
     total_steps: int | None = None  # length of the cosine; None = trainer.max_steps
     min_lr_ratio: float = 0.0  # the cosine ends at min_lr_ratio * each group's peak rate
     grad_clip: float = 0.5  # gradient-norm clipping; 0 disables
+    # Non-finite steps are skipped; the run stops when skipping is no longer rare (train/skip_guard.py).
+    max_skipped_fraction: float = 0.1  # stop when more than this share of the last `skip_window` steps skipped
+    skip_window: int = 100
+    max_consecutive_skips: int = 10  # stop after this many skipped steps in a row; 0 disables
+    anomaly_report: bool = True  # re-run the first skipped step under anomaly detection and report the op
 
 
 def uses_weight_decay(name: str, param: Tensor) -> bool:

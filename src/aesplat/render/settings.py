@@ -1,0 +1,57 @@
+"""Plain types of the rasterizer: the settings every backend understands and the statistics a render returns.
+
+They live apart from ``interface.py`` so that the interface and the backends both import them (and the
+backends never import the interface that dispatches to them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Options every backend understands; pass them to ``render`` as keyword arguments.
+
+    tile_size     screen tile side in pixels (torch backend: 8 or 16 are good; gsplat: 16)
+    chunk         Gaussians per compositing step of each tile list (torch backend)
+    max_elements  bound on tiles x pixels x chunk per step: the torch backend's memory budget
+                  (about 60 bytes per element in the backward)
+    near, far     depth cull planes (camera z)
+    eps2d         low-pass added to the 2D covariance
+    sh_tol        bands whose coefficients are all within this of zero are skipped
+    compile       torch backend: run the per-chunk maths through ``torch.compile`` (slow first call)
+    """
+
+    tile_size: int = 8
+    chunk: int = 32
+    max_elements: int = 1 << 22
+    near: float = 0.01
+    far: float = 1e10
+    eps2d: float = 0.3
+    sh_tol: float = 0.0
+    compile: bool = False
+
+    def __post_init__(self) -> None:
+        if self.tile_size < 1 or self.chunk < 1 or self.max_elements < 1:
+            raise ValueError(f"tile_size, chunk and max_elements must be positive: {self}")
+        if not 0.0 < self.near < self.far:
+            raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
+
+
+@dataclass(frozen=True)
+class RenderStats:
+    """What a render call did: the "effects on demand" accounting.
+
+    Counts are over (camera, Gaussian) pairs, in the order the culls run (a pair is counted once).
+    """
+
+    backend: str
+    pairs: int  # B * V * N
+    culled_transparent: int  # opacity < 1/255
+    culled_depth: int  # behind the camera, at its centre, on or before the near plane, beyond far
+    culled_footprint: int  # degenerate 2D covariance, or bounding box off the image
+    visible: int  # pairs that reached sorting and compositing
+    intersections: int  # (tile, Gaussian) pairs composited (torch backend; -1 where unknown)
+    sh_degree_requested: int
+    sh_degree_active: int  # bands actually evaluated (0: no SH basis at all)
