@@ -77,10 +77,8 @@ def measure(module: AESplatModule, batches, offsets: list[float], step: float = 
     for batch in batches:
         batch = module.on_after_batch_transfer(batch, 0)
         vc = batch.context.num_views
-        own, true = (
-            forward_batch(module.model, batch, "predicted"),
-            forward_batch(module.model, batch, "dataset"),
-        )
+        own = forward_batch(module.model, batch, "predicted")  # the camera head's cameras
+        true = forward_batch(module.model, batch, "dataset")
         truth = true.extrinsics  # [B, Vc + Vt, 4, 4] the data set's poses relative to context view 0
         for t in range(batch.target.num_views):
             v, image = vc + t, batch.target.images[:, t]
