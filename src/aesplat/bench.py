@@ -14,8 +14,9 @@ data's resolution, all Gaussians, fp32, the default renderer backend):
     backend           renderer backends available here (torch, torch compiled, gsplat with CUDA)
 
 Quality is PSNR (per image, then averaged) and SSIM against the ground-truth target images, rendered with
-the *predicted* target cameras. Time is milliseconds per scene for the model forward and for rendering the
-target views: median over repeats of each scene (warm-up runs excluded), then averaged over scenes.
+the *predicted* target cameras (the data set's for a checkpoint trained with ``model.cameras: dataset``).
+Time is milliseconds per scene for the model forward and for rendering the target views: median over repeats
+of each scene (warm-up runs excluded), then averaged over scenes.
 
 Writes DIR/bench.csv, DIR/BENCH.md (tables), DIR/accuracy_vs_time.png (quality against milliseconds, one
 series per knob) and DIR/bench.json (rows plus the machine and settings they were measured with).
@@ -44,6 +45,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from .export import drop_transparent, keep_most_opaque
+from .model import forward_batch
 from .predict import HelpFormatter
 from .render import render
 from .train.metrics import psnr, ssim
@@ -208,7 +210,7 @@ class _Forward:
     """Model outputs of one scene at one forward key, with the median forward time."""
 
     gaussians: Gaussians
-    extrinsics: Tensor  # [1, Vt, 4, 4] predicted target cameras
+    extrinsics: Tensor  # [1, Vt, 4, 4] target cameras (predicted, or the data set's)
     intrinsics: Tensor  # [1, Vt, 3, 3]
     ms: float
 
@@ -220,6 +222,7 @@ class Bench:
     scenes: BatchedExample with B = 1 each, float images on ``device``, square images of one size.
     render_kwargs: keyword arguments of ``render`` every point shares (background, tile_size, ...); a
         setting's own ``render_options`` override them.
+    cameras: ``model.cameras`` of the checkpoint (``predicted`` or ``dataset``: see ``forward_batch``).
     """
 
     def __init__(
@@ -232,11 +235,12 @@ class Bench:
         warmup: int = 1,
         render_kwargs: dict | None = None,
         progress: bool = True,
+        cameras: str = "predicted",
     ) -> None:
         if not scenes:
             raise ValueError("the benchmark needs at least one evaluation scene")
         self.model, self.scenes, self.device = model, list(scenes), device
-        self.repeats, self.warmup, self.progress = repeats, warmup, progress
+        self.repeats, self.warmup, self.progress, self.cameras = repeats, warmup, progress, cameras
         self.render_kwargs = dict(render_kwargs or {})
         self.native = scenes[0].target.images.shape[-1]
         self._forwards: dict[tuple, list[_Forward]] = {}
@@ -253,15 +257,16 @@ class Bench:
                     else nullcontext())  # fmt: skip
         results = []
         for i, scene in enumerate(self.scenes):
-            ctx = resize_views(scene.context, setting.input_size).images
-            tgt = resize_views(scene.target, setting.input_size).images
+            size = setting.input_size
+            resized = replace(scene, context=resize_views(scene.context, size),
+                              target=resize_views(scene.target, size))  # fmt: skip
 
-            def run(ctx: Tensor = ctx, tgt: Tensor = tgt):
+            def run(resized: BatchedExample = resized):
                 with autocast:
-                    return self.model(ctx, tgt)
+                    return forward_batch(self.model, resized, self.cameras)
 
             out, ms = time_call(run, self.device, self.repeats, self.warmup if i == 0 else 0)
-            vc = ctx.shape[1]
+            vc = scene.context.num_views
             results.append(
                 _Forward(
                     gaussians=out.gaussians.to(dtype=torch.float32),
@@ -321,7 +326,7 @@ class Bench:
         scene = self.scenes[0]
         options = {**self.render_kwargs, **dict(setting.render_options), "backend": setting.backend}
         for _ in range(runs):
-            out = self.model(scene.context.images, scene.target.images)
+            out = forward_batch(self.model, scene, self.cameras)
             vc = scene.context.num_views
             render(out.gaussians, out.extrinsics[:, vc:], out.intrinsics[:, vc:], self.native, self.native,
                    **options)  # fmt: skip
@@ -401,7 +406,9 @@ def markdown_tables(rows: Sequence[Row], meta: dict) -> str:
         f"{meta.get('device', '?')}, torch {meta.get('torch', '?')} with {meta.get('threads', '?')} threads; "
         f"median of {meta.get('repeats', '?')} repeats per scene after {meta.get('warmup', '?')} warm-up "
         f"run(s) per setting and {meta.get('process_warmup', 0)} of the baseline before the first. "
-        "Milliseconds are per scene (model forward on context + target views; rendering of the target views).",
+        "Milliseconds are per scene (model forward on context + target views, on the context views alone with "
+        "the data set's cameras; rendering of the target views). "
+        f"Cameras: {meta.get('cameras', 'predicted')} (`model.cameras`).",
         "",
     ]
     if base is not None:
@@ -648,7 +655,8 @@ def main(argv: list[str] | None = None) -> int:
     render_kwargs = {**loaded.render.get("options", {}), "background": loaded.background.to(device)}
     render_kwargs.pop("compile", None)  # compiling is a knob of its own here
     bench = Bench(loaded.model, scenes, device, repeats=args.repeats, warmup=args.warmup,
-                  render_kwargs=render_kwargs, progress=not args.no_progress)  # fmt: skip
+                  render_kwargs=render_kwargs, progress=not args.no_progress,
+                  cameras=loaded.cameras)  # fmt: skip
     rows = bench.run(points, baseline, warmup_runs=args.process_warmup)
     if args.out is not None:
         out = Path(args.out)
@@ -661,6 +669,7 @@ def main(argv: list[str] | None = None) -> int:
         "repeats": args.repeats, "warmup": args.warmup, "process_warmup": args.process_warmup,
         "sh_degree": loaded.sh_degree,
         "model_size": loaded.net.get("size"), "appearance": loaded.net.get("appearance"),
+        "cameras": loaded.cameras,
     }  # fmt: skip
     paths = write_report(rows, out, meta)
     print(paths["BENCH.md"].read_text())

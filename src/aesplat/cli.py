@@ -11,6 +11,8 @@ and the data, the parser holds four sections: ``checkpoint`` (ModelCheckpoint: b
 a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml,
 test/. ``--ckpt_path last`` resumes from the newest of
 checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts fresh when there is none).
+With ``--ckpt_path FILE``, LightningCLI takes the whole ``model`` section from the checkpoint's hyper-parameters
+(``model.cameras`` included), so a checkpoint evaluates as it was trained, whatever the config file says.
 """
 
 from __future__ import annotations

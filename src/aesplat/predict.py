@@ -10,6 +10,9 @@ writes
     DIR/renders/          the input views re-rendered from the Gaussians with the predicted cameras
     DIR/depth/            predicted depth per input view: colour-mapped PNG and raw float32 .npy
     DIR/novel/            frames along a path through the predicted input cameras, and trajectory.gif
+
+A checkpoint trained with ``model.cameras: dataset`` is refused: its camera head never trained, and images
+come without poses here.
 """
 
 from __future__ import annotations
@@ -164,9 +167,11 @@ def camera_record(extrinsics: Tensor, intrinsics: Tensor, height: int, width: in
 class LoadedCheckpoint:
     """A trained model restored from an ``aesplat fit`` checkpoint, with what the run was configured with.
 
-    net     the checkpoint's ``net`` hyper-parameters (arguments of ``build_model``)
-    render  the checkpoint's ``render`` hyper-parameters (backend, background, options)
-    data    the ``data`` section of the run's config.yaml (None when the file is not beside the checkpoint)
+    net      the checkpoint's ``net`` hyper-parameters (arguments of ``build_model``)
+    render   the checkpoint's ``render`` hyper-parameters (backend, background, options)
+    data     the ``data`` section of the run's config.yaml (None when the file is not beside the checkpoint)
+    cameras  ``model.cameras`` of the run: ``predicted``, or ``dataset`` (trained with the data set's cameras;
+             the camera head is untrained, so the model needs every view's camera: ``forward_batch``)
     """
 
     model: torch.nn.Module
@@ -174,6 +179,7 @@ class LoadedCheckpoint:
     render: dict
     data: dict | None
     path: Path
+    cameras: str = "predicted"
 
     @property
     def sh_degree(self) -> int:
@@ -207,7 +213,7 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
     (the trained weights come from the checkpoint), then the ``model.*`` entries of the state dict are loaded
     strictly.
     """
-    from .model import NetConfig
+    from .model import NetConfig, checkpoint_cameras
 
     path = Path(path)
     if not path.is_file():
@@ -228,9 +234,8 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
     model.load_state_dict(state, strict=True)
     model.to(device).eval()
     data = (run_config(path) or {}).get("data")
-    return LoadedCheckpoint(
-        model=model, net=net, render=dict(hparams.get("render") or {}), data=data, path=path
-    )
+    render = dict(hparams.get("render") or {})
+    return LoadedCheckpoint(model, net, render, data, path, cameras=checkpoint_cameras(ckpt))
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -406,6 +411,13 @@ def main(argv: list[str] | None = None) -> int:
         loaded = load_checkpoint(args.ckpt, device)
     except (FileNotFoundError, ValueError) as err:
         raise SystemExit(f"aesplat predict: {err}") from err
+    if loaded.cameras != "predicted":
+        raise SystemExit(
+            f"aesplat predict: {args.ckpt} was trained with model.cameras={loaded.cameras}: it renders with "
+            "the data set's cameras, its camera head never trained, and predict has no cameras for the input "
+            "images. Evaluate it with `aesplat test` or `aesplat bench`, or predict with a checkpoint trained "
+            "with model.cameras=predicted."
+        )
     size = args.size or loaded.image_size
     if size % PATCH != 0:
         raise SystemExit(f"aesplat predict: --size {size} is not a multiple of the patch size {PATCH}")

@@ -3,7 +3,16 @@ import math
 import pytest
 import torch
 
-from aesplat.geometry import C0, eval_sh, num_sh_coeffs, rgb_to_sh_dc, sh_basis, sh_dc_to_rgb
+from aesplat.geometry import (
+    C0,
+    eval_sh,
+    num_sh_coeffs,
+    quat_to_matrix,
+    rgb_to_sh_dc,
+    sh_basis,
+    sh_dc_to_rgb,
+    sh_rotation_matrix,
+)
 
 
 def assoc_legendre_cs(l: int, m: int, x: torch.Tensor) -> torch.Tensor:
@@ -88,3 +97,61 @@ def test_i2dc_reproduces_pixels():
     torch.testing.assert_close(sh_dc_to_rgb(rgb_to_sh_dc(rgb)), rgb, atol=1e-7, rtol=0)
     dirs = torch.nn.functional.normalize(torch.randn(4, 32, 32, 3), dim=-1)
     torch.testing.assert_close(eval_sh(rgb_to_sh_dc(rgb)[..., None, :], dirs), rgb, atol=1e-7, rtol=0)
+
+
+def _rotations(n: int, dtype=torch.float64) -> torch.Tensor:
+    return quat_to_matrix(torch.randn(n, 4, dtype=dtype))
+
+
+def _unit(n: int, dtype=torch.float64) -> torch.Tensor:
+    d = torch.randn(n, 3, dtype=dtype)
+    return d / d.norm(dim=-1, keepdim=True)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3, 4])
+def test_rotated_coefficients_evaluate_the_turned_function(degree):
+    """f_rotated(d) == f(R^T d) at random directions, for every band up to ``degree``, in float64."""
+    rot = _rotations(5)  # [5, 3, 3]
+    coeffs = torch.randn(5, num_sh_coeffs(degree), 3, dtype=torch.float64)
+    rotated = sh_rotation_matrix(rot, degree) @ coeffs  # [5, K, 3]
+    d = _unit(200)
+    for i in range(5):
+        turned = d @ rot[i]  # rows (R^T d)^T
+        want = sh_basis(turned, degree) @ coeffs[i]  # f(R^T d), no clamping
+        got = sh_basis(d, degree) @ rotated[i]
+        torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+    # the top band alone, turned, stays in its band
+    top = torch.zeros_like(coeffs)
+    top[:, degree**2 :] = coeffs[:, degree**2 :]
+    lower = (sh_rotation_matrix(rot, degree) @ top)[:, : degree**2]
+    assert lower.abs().max() == 0
+
+
+def test_rotation_matrix_identity_composition_orthogonality_and_dc():
+    eye = torch.eye(3, dtype=torch.float64)
+    torch.testing.assert_close(
+        sh_rotation_matrix(eye, 4), torch.eye(25, dtype=torch.float64), atol=1e-12, rtol=0
+    )
+    r1, r2 = _rotations(4), _rotations(4)
+    m1, m2, m12 = (sh_rotation_matrix(r, 4) for r in (r1, r2, r1 @ r2))
+    torch.testing.assert_close(m12, m1 @ m2, atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        m1 @ m1.mT, torch.eye(25, dtype=torch.float64).expand(4, 25, 25), atol=1e-12, rtol=0
+    )
+    torch.testing.assert_close(sh_rotation_matrix(r1.mT, 4), m1.mT, atol=1e-12, rtol=0)  # R^-1 -> M^-1
+    assert torch.equal(m1[:, 0], torch.eye(25, dtype=torch.float64)[0].expand(4, 25))  # DC untouched, exactly
+    assert sh_rotation_matrix(r1, 0).shape == (4, 1, 1)
+
+
+def test_rotation_matrix_float32_and_batched_shapes():
+    rot = _rotations(6).reshape(2, 3, 3, 3)
+    m64 = sh_rotation_matrix(rot, 3)
+    m32 = sh_rotation_matrix(rot.float(), 3)
+    assert m32.dtype == torch.float32 and m32.shape == (2, 3, 16, 16)
+    torch.testing.assert_close(m32.double(), m64, atol=1e-5, rtol=0)
+
+
+def test_rotation_matrix_is_differentiable_in_the_rotation():
+    q = torch.randn(2, 4, dtype=torch.float64, requires_grad=True)
+    c = torch.randn(2, 9, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda q, c: sh_rotation_matrix(quat_to_matrix(q), 2) @ c, (q, c))

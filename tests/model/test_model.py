@@ -257,3 +257,42 @@ def test_bf16_autocast_runs_transformer_in_bf16_and_heads_in_fp32(model):
 def test_gaussian_rotations_are_composed_with_the_camera_rotation():
     a, b = torch.nn.functional.normalize(torch.randn(2, 50, 4), dim=-1)
     torch.testing.assert_close(quat_to_matrix(_quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b))
+
+
+def test_given_cameras_replace_the_camera_head(model):
+    """Cameras passed in are used as they are; the camera head does not run and targets are not needed.
+    Given the head's own prediction, the Gaussians are those of the plain forward pass."""
+    ctx, tgt = _images(1, 2, 0), _images(1, 1, 1)
+    calls = []
+    handle = model.camera_head.register_forward_hook(lambda *args: calls.append(1))
+    try:
+        with torch.no_grad():
+            own = model(ctx, tgt)
+            assert calls == [1]
+            given = model(ctx, extrinsics=own.extrinsics, intrinsics=own.intrinsics)
+            ext = own.extrinsics.clone()
+            ext[:, 1, :3, 3] += torch.tensor([0.5, 0.0, 0.0])  # move context camera 1
+            moved = model(ctx, extrinsics=ext, intrinsics=own.intrinsics)
+    finally:
+        handle.remove()
+    assert calls == [1]  # only the first call ran the camera head
+    assert torch.equal(given.extrinsics, own.extrinsics) and torch.equal(given.intrinsics, own.intrinsics)
+    assert given.extrinsics.shape == (1, 3, 4, 4)  # the target camera is passed through
+    for name, value in _gaussian_fields(own.gaussians).items():
+        torch.testing.assert_close(getattr(given.gaussians, name), value, msg=name)
+    n = H * W  # view 1's centres follow its camera; view 0's do not move
+    torch.testing.assert_close(
+        moved.gaussians.means[:, n:], given.gaussians.means[:, n:] + torch.tensor([0.5, 0, 0])
+    )
+    torch.testing.assert_close(moved.gaussians.means[:, :n], given.gaussians.means[:, :n])
+
+
+@pytest.mark.parametrize(
+    ("ext_shape", "intr_shape", "match"),
+    [((1, 2, 4, 4), None, "both extrinsics and intrinsics"), ((1, 1, 4, 4), (1, 1, 3, 3), "V >= 2"),
+     ((1, 3, 4, 4), (1, 2, 3, 3), "given cameras"), ((2, 2, 4, 4), (2, 2, 3, 3), "B = 1")],
+)  # fmt: skip
+def test_given_cameras_are_checked(model, ext_shape, intr_shape, match):
+    intrinsics = None if intr_shape is None else torch.eye(3).expand(intr_shape)
+    with pytest.raises(ValueError, match=match):
+        model(_images(1, 2, 0), extrinsics=torch.eye(4).expand(ext_shape), intrinsics=intrinsics)

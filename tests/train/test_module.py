@@ -11,6 +11,8 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import OmegaConf
 
 from aesplat.data import DataModule
+from aesplat.model import dataset_cameras
+from aesplat.render import render
 from aesplat.train import AESplatModule
 from aesplat.train.metrics import psnr
 from aesplat.train.optim import OptimConfig, build_optimizer
@@ -25,7 +27,7 @@ def smoke_config() -> dict:
 def make_module(**overrides) -> AESplatModule:
     model = smoke_config()["model"]
     for key, value in overrides.items():
-        model[key] = {**model.get(key, {}), **value}
+        model[key] = {**model.get(key, {}), **value} if isinstance(value, dict) else value
     return AESplatModule(**model)
 
 
@@ -198,3 +200,44 @@ def test_checkpoint_has_no_lpips_and_loads_weights_only(smoke_shards, tmp_path):
     loaded = AESplatModule.load_from_checkpoint(tmp_path / "ckpt" / "last.ckpt", map_location="cpu")
     assert loaded.hparams["net"]["size"] == "tiny"
     assert all(torch.equal(v, ckpt["state_dict"][k]) for k, v in loaded.state_dict().items())
+
+
+def test_dataset_cameras_render_the_targets_with_the_data_sets_poses(smoke_shards, tmp_path):
+    """model.cameras=dataset: the targets are rendered with the batch's own cameras relative to context view
+    0, the camera head never runs and never trains, and everything else does train."""
+    L.seed_everything(0)
+    module, data = make_module(cameras="dataset"), make_data(smoke_shards, train_batches_per_epoch=2)
+    assert make_module().cameras == "predicted" and module.hparams["cameras"] == "dataset"
+    batch = next(iter(data.train_dataloader())).float_images()
+    out, rendered = module(batch)
+    poses = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1).double()
+    torch.testing.assert_close(
+        out.extrinsics.double(), torch.linalg.inv(poses[:, :1]) @ poses, atol=1e-5, rtol=0
+    )
+    extrinsics, intrinsics = dataset_cameras(batch)
+    assert torch.equal(out.extrinsics, extrinsics) and torch.equal(out.intrinsics, intrinsics)
+    vc, (h, w) = batch.context.num_views, batch.context.image_shape
+    direct = render(out.gaussians, extrinsics[:, vc:], intrinsics[:, vc:], h, w, backend="torch")
+    torch.testing.assert_close(rendered.color, direct.color, atol=1e-6, rtol=0)
+    rendered.color.mean().backward()  # DDP (no unused-parameter search) needs a gradient on every trainable one
+    assert all(p.grad is not None for p in module.parameters() if p.requires_grad)
+    module.zero_grad(set_to_none=True)
+
+    head = module.model.camera_head
+    calls = []
+    head.register_forward_hook(lambda *args: calls.append(1))
+    before = {name: p.detach().clone() for name, p in module.model.named_parameters()}
+    make_trainer(2, tmp_path).fit(module, data)
+    assert not calls
+    trained = {id(p) for group in module.trainer.optimizers[0].param_groups for p in group["params"]}
+    for name, p in module.model.named_parameters():
+        if name.startswith("camera_head."):
+            assert p.grad is None and id(p) not in trained and torch.equal(p, before[name]), name
+    assert not torch.equal(module.model.depth_head.out[2].weight, before["depth_head.out.2.weight"])
+
+
+def test_a_checkpoint_of_the_other_camera_source_is_refused():
+    module = make_module()
+    with pytest.raises(ValueError, match="trained with model.cameras=dataset.*--model.cameras dataset"):
+        module.on_load_checkpoint({"hyper_parameters": {"cameras": "dataset"}})
+    module.on_load_checkpoint({"hyper_parameters": {}})  # older checkpoints were all predicted

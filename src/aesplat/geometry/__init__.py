@@ -35,6 +35,7 @@ from .sh import (
     sh_basis,
     sh_dc_to_rgb,
     sh_degree_from_coeffs,
+    sh_rotation_matrix,
 )
 
 __all__ = [
@@ -65,6 +66,7 @@ __all__ = [
     "sh_basis",
     "sh_dc_to_rgb",
     "sh_degree_from_coeffs",
+    "sh_rotation_matrix",
     "transform_points",
     "unproject_depth",
     "unproject_depth_camera",

@@ -169,3 +169,52 @@ def rgb_to_sh_dc(rgb: Tensor) -> Tensor:
 def sh_dc_to_rgb(dc: Tensor) -> Tensor:
     """Inverse of :func:`rgb_to_sh_dc`: C0 * dc + 0.5 (no clamping)."""
     return dc * C0 + 0.5
+
+
+# SH rotation. Rotating a function on the sphere maps each band onto itself, so the rotated coefficients are
+# fixed by the rotated function's values at any set of directions on which each band's basis has full rank:
+# a least-squares fit on such a set is exact (not an approximation). 64 Fibonacci directions give a basis
+# matrix of condition number 1.09 up to degree 4.
+_FIT_DIRECTIONS = 64
+_FITS: dict[tuple[int, torch.dtype, torch.device], tuple[Tensor, Tensor, Tensor]] = {}
+
+
+def _rotation_fit(degree: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """Fixed directions [N, 3], the pseudo-inverse [K-1, N] of their basis values in bands 1..``degree``,
+    and the block-diagonal mask [K-1, K-1] of those bands (computed in float64, cached)."""
+    key = (degree, dtype, device)
+    if key not in _FITS:
+        i = torch.arange(_FIT_DIRECTIONS, dtype=torch.float64) + 0.5
+        z = 1.0 - 2.0 * i / _FIT_DIRECTIONS
+        r, phi = torch.sqrt(1.0 - z * z), torch.pi * (1.0 + 5.0**0.5) * i
+        dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+        pinv = torch.linalg.pinv(sh_basis(dirs, degree)[:, 1:])
+        band = torch.cat([torch.full((2 * l + 1,), l) for l in range(1, degree + 1)])
+        mask = (band[:, None] == band[None, :]).to(torch.float64)
+        _FITS[key] = tuple(t.to(dtype=dtype, device=device) for t in (dirs, pinv, mask))
+    return _FITS[key]
+
+
+def sh_rotation_matrix(rotation: Tensor, degree: int) -> Tensor:
+    """The matrix M [..., K, K] that rotates SH coefficients of degree ``degree`` by ``rotation`` [..., 3, 3].
+
+    If c [K] are the coefficients of f(d) = sum_k c_k Y_k(d), then M @ c are those of d -> f(R^T d): the
+    function turned by R. A colour defined in a camera's frame (directions d_cam) becomes the same colour in
+    the world frame with R = the camera-to-world rotation, since d_cam = R^T d_world. M is block diagonal
+    (one orthogonal block per band, the DC entry exactly 1), M(R1 R2) = M(R1) M(R2), and it is differentiable
+    in R (a polynomial of R's entries). Computed as the least-squares fit of the rotated function's values at
+    fixed directions; float32 or float64 as ``rotation``.
+    """
+    if not 0 <= degree <= MAX_SH_DEGREE:
+        raise ValueError(f"SH degree must be in 0..{MAX_SH_DEGREE}, got {degree}")
+    if rotation.shape[-2:] != (3, 3):
+        raise ValueError(f"rotation must be [..., 3, 3], got shape {tuple(rotation.shape)}")
+    eye = torch.eye(num_sh_coeffs(degree), dtype=rotation.dtype, device=rotation.device)
+    if degree == 0:
+        return eye.expand(*rotation.shape[:-2], 1, 1)
+    dirs, pinv, mask = _rotation_fit(degree, rotation.dtype, rotation.device)
+    values = sh_basis(dirs @ rotation, degree)[..., 1:]  # [..., N, K-1]: basis at R^T d (rows d^T R)
+    higher = (pinv @ values) * mask  # [..., K-1, K-1]; the mask zeroes rounding noise between bands
+    dc = torch.zeros_like(eye)
+    dc[0, 0] = 1.0
+    return torch.nn.functional.pad(higher, (1, 0, 1, 0)) + dc

@@ -14,7 +14,19 @@ from .camera_head import CameraHead
 from .dpt import DPT, DepthHead
 from .encoder import EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead, GaussianHeadOutput
-from .model import SIZES, AESplatModel, ModelConfig, ModelOutput, NetConfig, build_model
+from .model import (
+    CAMERA_SOURCES,
+    SIZES,
+    AESplatModel,
+    CameraSource,
+    ModelConfig,
+    ModelOutput,
+    NetConfig,
+    build_model,
+    checkpoint_cameras,
+    dataset_cameras,
+    forward_batch,
+)
 from .transformer import GeometryTransformer, TransformerConfig
 from .weights import (
     WeightsReport,
@@ -26,11 +38,13 @@ from .weights import (
 
 __all__ = [
     "APPEARANCE_MODES",
+    "CAMERA_SOURCES",
     "DPT",
     "GVSRE",
     "SIZES",
     "AESplatModel",
     "CameraHead",
+    "CameraSource",
     "DecoupledAppearance",
     "DepthHead",
     "EncoderConfig",
@@ -45,7 +59,10 @@ __all__ = [
     "ViewDependentHead",
     "WeightsReport",
     "build_model",
+    "checkpoint_cameras",
     "convert_encoder_state_dict",
+    "dataset_cameras",
+    "forward_batch",
     "gvsre_descriptor",
     "i2dc",
     "load_encoder_weights",

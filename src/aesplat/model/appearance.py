@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from aesplat.geometry import num_sh_coeffs, project_points, rgb_to_sh_dc, safe_norm
+from aesplat.geometry import num_sh_coeffs, project_points, rgb_to_sh_dc, safe_norm, sh_rotation_matrix
 
 APPEARANCE_MODES = ("full", "no_gvsre", "no_wcm", "i2dc_only", "baseline", "baseline_i2dc")
 
@@ -118,6 +118,12 @@ class DecoupledAppearance(nn.Module):
     baseline       Gaussian head Gaussian head
     baseline_i2dc  I2DC          Gaussian head
     ============== ============= =================================================
+
+    The Gaussian head predicts each view's SH from that view's pixels, in that camera's frame; in the
+    baseline rows they are turned into view 0's frame by the view's camera-to-view-0 rotation (the paper's
+    c^{v->1}, Eq. 1). The view-dependent head's output is taken as it is, in view 0's frame: GVSRE feeds it
+    the directions to every camera centre in that frame, so it can learn that frame's SH (``no_gvsre`` has
+    no such frame cue; as in the paper, nothing turns its output either).
     """
 
     def __init__(self, mode: str, sh_degree: int, feature_dim: int, num_context_views: int = 2,
@@ -152,7 +158,9 @@ class DecoupledAppearance(nn.Module):
         b, v, p, _ = means.shape
         parts: list[Tensor] = [i2dc(images)] if self.use_i2dc else []
         if head_sh is not None:
-            parts.append(head_sh.reshape(b, v * p, -1, 3))
+            s = head_sh.shape[3]  # K (baseline) or K - 1 (baseline_i2dc): the rotation is block diagonal
+            turn = sh_rotation_matrix(extrinsics[:, :, :3, :3], self.sh_degree)[..., -s:, -s:]  # [B, V, S, S]
+            parts.append(torch.einsum("bvij,bvpjc->bvpic", turn, head_sh).reshape(b, v * p, s, 3))
         if self.view_dependent_head is not None:
             if v != self.num_context_views:
                 raise ValueError(

@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from typing import Any, Literal, get_args
 
 import torch
 from torch import Tensor, nn
 
-from aesplat.geometry import matrix_to_quat, unproject_depth
-from aesplat.types import Gaussians
+from aesplat.geometry import matrix_to_quat, relative_to_first, unproject_depth
+from aesplat.types import BatchedExample, Gaussians
 
 from .appearance import APPEARANCE_MODES, DecoupledAppearance
 from .camera_head import CameraHead
@@ -24,6 +24,11 @@ from .weights import WeightsReport, load_pretrained_weights
 log = logging.getLogger(__name__)
 
 _GROUP_OF = {"appearance": "appearance", "encoder": "backbone"}  # top-level submodule -> optimizer group
+
+# Where a run's cameras come from (``model.cameras``): the camera head (the method: pose-free), or the data
+# set's poses and intrinsics (posed training; the appearance model measured without the pose head).
+CameraSource = Literal["predicted", "dataset"]
+CAMERA_SOURCES: tuple[str, ...] = get_args(CameraSource)
 
 
 @dataclass(frozen=True)
@@ -130,6 +135,11 @@ class AESplatModel(nn.Module):
     forward(context_images [B, Vc, 3, H, W], target_images [B, Vt, 3, H, W] | None) -> ModelOutput, images
     float in [0, 1], H and W multiples of 14, Vc >= 2. The encoder and the geometry transformer follow any
     surrounding autocast; the heads, geometry and appearance always run in float32.
+
+    forward(context_images, extrinsics=E, intrinsics=K) uses the cameras E [B, V, 4, 4] (camera-to-world in
+    context view 0's frame) and K [B, V, 3, 3] (normalised) instead of the camera head's, which does not run;
+    V >= Vc, the first Vc are the context cameras and the rest are passed through as the target cameras.
+    Target images are then not needed (they only ever serve to predict the target cameras).
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -174,6 +184,19 @@ class AESplatModel(nn.Module):
             groups[_GROUP_OF.get(name.split(".")[0], "rest")].append((name, param))
         return groups
 
+    def _check_cameras(self, context: Tensor, extrinsics: Tensor | None, intrinsics: Tensor | None) -> None:
+        if (extrinsics is None) != (intrinsics is None):
+            raise ValueError("give both extrinsics and intrinsics to replace the camera head's, or neither")
+        if extrinsics is None:
+            return
+        b, vc = context.shape[:2]
+        v = extrinsics.shape[1] if extrinsics.ndim == 4 else -1
+        if extrinsics.shape != (b, v, 4, 4) or intrinsics.shape != (b, v, 3, 3) or v < vc:
+            raise ValueError(
+                f"given cameras must be extrinsics [B, V, 4, 4] and intrinsics [B, V, 3, 3] with B = {b} and "
+                f"V >= {vc} context views, got {tuple(extrinsics.shape)} and {tuple(intrinsics.shape)}"
+            )
+
     def _check_inputs(self, context: Tensor, target: Tensor | None) -> None:
         if context.ndim != 5 or context.shape[2] != 3:
             raise ValueError(f"context_images must be [B, Vc, 3, H, W], got shape {tuple(context.shape)}")
@@ -191,8 +214,17 @@ class AESplatModel(nn.Module):
                     f"got {tuple(target.shape)}"
                 )
 
-    def forward(self, context_images: Tensor, target_images: Tensor | None = None) -> ModelOutput:
+    def forward(
+        self,
+        context_images: Tensor,
+        target_images: Tensor | None = None,
+        extrinsics: Tensor | None = None,
+        intrinsics: Tensor | None = None,
+    ) -> ModelOutput:
         self._check_inputs(context_images, target_images)
+        self._check_cameras(context_images, extrinsics, intrinsics)
+        if extrinsics is not None:
+            target_images = None  # the camera head does not run: target views would be computed for nothing
         b, vc, _, h, w = context_images.shape
         images = context_images if target_images is None else torch.cat([context_images, target_images], dim=1)
         v = images.shape[1]
@@ -204,7 +236,9 @@ class AESplatModel(nn.Module):
         with torch.autocast(device_type=images.device.type, enabled=False):
             layers = [x.float() for x in layers]
             context_images = context_images.float()
-            extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0])
+            if extrinsics is None:
+                extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0])
+            extrinsics, intrinsics = extrinsics.float(), intrinsics.float()
             start = self.transformer.patch_start
             context_tokens = [x[:, :vc, start:].flatten(0, 1) for x in layers]  # 4 x [B·Vc, P, 2·dim]
 
@@ -227,6 +261,34 @@ class AESplatModel(nn.Module):
                 sh=sh,
             )
         return ModelOutput(gaussians=gaussians, extrinsics=extrinsics, intrinsics=intrinsics, depth=depth)
+
+
+def checkpoint_cameras(checkpoint: dict) -> str:
+    """The camera source a training checkpoint (the loaded dict) was trained with; older ones: predicted."""
+    return (checkpoint.get("hyper_parameters") or {}).get("cameras", "predicted")
+
+
+def forward_batch(model: AESplatModel, batch: BatchedExample, cameras: str = "predicted") -> ModelOutput:
+    """``model`` on the views of ``batch`` with its cameras from ``cameras`` (one of ``CAMERA_SOURCES``).
+
+    predicted: the camera head predicts every view's camera from the context and target images.
+    dataset: the batch's own cameras, every view's pose expressed relative to context view 0; the model
+    sees the context images only.
+    """
+    if cameras == "predicted":
+        return model(batch.context.images, batch.target.images)
+    if cameras == "dataset":
+        extrinsics, intrinsics = dataset_cameras(batch)
+        return model(batch.context.images, extrinsics=extrinsics, intrinsics=intrinsics)
+    raise ValueError(f"unknown camera source {cameras!r}; choose one of {', '.join(CAMERA_SOURCES)}")
+
+
+def dataset_cameras(batch: BatchedExample) -> tuple[Tensor, Tensor]:
+    """The batch's cameras, context views first: extrinsics [B, Vc + Vt, 4, 4] camera-to-world in context
+    view 0's frame (view 0 the identity), intrinsics [B, Vc + Vt, 3, 3] normalised; float32."""
+    extrinsics = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1).double()
+    intrinsics = torch.cat([batch.context.intrinsics, batch.target.intrinsics], dim=1).float()
+    return relative_to_first(extrinsics).float(), intrinsics  # float64 first: world poses can be far away
 
 
 def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4, **kwargs) -> AESplatModel:

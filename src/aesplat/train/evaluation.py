@@ -48,8 +48,11 @@ def summarize(rows: list[dict], lpips_unavailable: str | None = None) -> dict:
     return summary
 
 
-def write_results(rows: list[dict], out_dir: Path, lpips_unavailable: str | None = None) -> dict:
-    """Write ``per_scene.csv`` and ``summary.json`` into ``out_dir``; returns the summary."""
+def write_results(
+    rows: list[dict], out_dir: Path, lpips_unavailable: str | None = None, cameras: str = "predicted"
+) -> dict:
+    """Write ``per_scene.csv`` and ``summary.json`` into ``out_dir``; returns the summary. ``cameras``: where
+    the rendering cameras came from (``model.cameras``), recorded in the summary."""
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = sorted(rows, key=lambda r: r["scene"])
     with open(out_dir / "per_scene.csv", "w", newline="") as f:
@@ -57,7 +60,7 @@ def write_results(rows: list[dict], out_dir: Path, lpips_unavailable: str | None
         writer.writeheader()
         for row in rows:
             writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in CSV_COLUMNS})
-    summary = summarize(rows, lpips_unavailable)
+    summary = {"cameras": cameras, **summarize(rows, lpips_unavailable)}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
 

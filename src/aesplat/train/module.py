@@ -3,6 +3,8 @@
 A batch flows: context + target images -> model (masked attention: targets cannot change the Gaussians)
 -> Gaussians and *predicted* cameras of all views -> render the target views with the predicted target
 cameras -> photometric loss against the real target images. Ground-truth poses are used only in metrics.
+With ``cameras="dataset"`` (posed training, not the method) the batch's own cameras replace the camera
+head's everywhere; the head is frozen and never runs.
 
 Optimization is manual so that a step with a non-finite loss or gradient is visibly skipped (parameters and
 AdamW state untouched, counted, logged) while the trainer's step counter, the schedule and the curriculum
@@ -22,7 +24,14 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 from torchmetrics import MeanMetric
 
-from aesplat.model import ModelOutput, NetConfig
+from aesplat.model import (
+    CAMERA_SOURCES,
+    CameraSource,
+    ModelOutput,
+    NetConfig,
+    checkpoint_cameras,
+    forward_batch,
+)
 from aesplat.render import render
 from aesplat.types import BatchedExample, RenderOutput
 
@@ -63,19 +72,26 @@ class AESplatModule(LightningModule):
         optim: OptimConfig | None = None,
         render: RenderConfig | None = None,
         eval: EvalConfig | None = None,
+        cameras: CameraSource = "predicted",
     ) -> None:
-        """Each argument is a config dataclass (or its dict form, as stored in checkpoints); None = defaults."""
+        """Each config is a dataclass (or its dict form, as stored in checkpoints); None = defaults.
+        ``cameras``: ``predicted`` (the camera head's: the method) or ``dataset`` (each batch's own: posed)."""
         super().__init__()
         net, loss, optim, render, eval = (
             _as(NetConfig, net), _as(LossConfig, loss), _as(OptimConfig, optim),
             _as(RenderConfig, render), _as(EvalConfig, eval),
         )  # fmt: skip
+        if cameras not in CAMERA_SOURCES:
+            raise ValueError(f"model.cameras must be one of {', '.join(CAMERA_SOURCES)}, got {cameras!r}")
         configs = {"net": net, "loss": loss, "optim": optim, "render": render, "eval": eval}
-        self.save_hyperparameters({name: asdict(cfg) for name, cfg in configs.items()})
+        self.save_hyperparameters({**{name: asdict(cfg) for name, cfg in configs.items()}, "cameras": cameras})
         self.optim_cfg, self.render_cfg, self.eval_cfg = optim, render, eval
+        self.cameras = cameras
         self.automatic_optimization = False
 
         self.model = net.build()
+        if cameras == "dataset":
+            self.model.camera_head.requires_grad_(False)  # out of the optimizer and of DDP's gradient sync
         if loss.lpips_weight > 0 or eval.metrics_lpips:
             lpips, self.lpips_unavailable = maybe_lpips(required=loss.lpips_weight > 0)
         else:
@@ -97,10 +113,10 @@ class AESplatModule(LightningModule):
 
     # ----------------------------------------------------------------------------------------- forward
     def forward(self, batch: BatchedExample) -> tuple[ModelOutput, RenderOutput]:
-        """Model outputs and the renders of the target views with the predicted target cameras."""
+        """Model outputs and the renders of the target views with the target cameras (``self.cameras``)."""
         vc = batch.context.num_views
         height, width = batch.context.image_shape
-        out = self.model(batch.context.images, batch.target.images)
+        out = forward_batch(self.model, batch, self.cameras)
         background = torch.tensor(self.render_cfg.background, device=self.device)
         rendered = render(
             out.gaussians, out.extrinsics[:, vc:], out.intrinsics[:, vc:], height, width,
@@ -180,9 +196,10 @@ class AESplatModule(LightningModule):
         if self.lpips is not None:
             metrics["lpips"] = self.lpips(pred, target)
         metrics = {k: v.reshape(b, vt).mean(1) for k, v in metrics.items()}
-        gt = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1)
-        rot, trans = relative_pose_errors(out.extrinsics, gt)
-        metrics["rot_err_deg"], metrics["trans_err_deg"] = rot.mean(1), trans.mean(1)
+        if self.cameras == "predicted":  # with the data set's cameras there is no pose error to measure
+            gt = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1)
+            rot, trans = relative_pose_errors(out.extrinsics, gt)
+            metrics["rot_err_deg"], metrics["trans_err_deg"] = rot.mean(1), trans.mean(1)
         return metrics, rendered
 
     def validation_step(self, batch: BatchedExample, batch_idx: int) -> None:
@@ -194,7 +211,7 @@ class AESplatModule(LightningModule):
 
     def on_validation_epoch_end(self) -> None:
         for key, metric in self.val_means.items():
-            if key == "lpips" and self.lpips is None:
+            if metric.update_count == 0:  # LPIPS without its weights, pose errors with the data set's cameras
                 continue
             self.log(f"val/{key}", metric.compute(), prog_bar=key == "psnr", sync_dist=False)
             metric.reset()
@@ -229,7 +246,7 @@ class AESplatModule(LightningModule):
             torch.distributed.all_gather_object(gathered, rows)
             rows = [row for part in gathered for row in part]
         if self.trainer.is_global_zero:
-            summary = write_results(rows, self.test_output_dir, self.lpips_unavailable)
+            summary = write_results(rows, self.test_output_dir, self.lpips_unavailable, self.cameras)
             print(f"wrote {len(rows)} scenes to {self.test_output_dir}: {summary['metrics']}")
 
     @property
@@ -258,6 +275,9 @@ class AESplatModule(LightningModule):
         checkpoint["rng"] = rng_state()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        if (saved := checkpoint_cameras(checkpoint)) != self.cameras:
+            raise ValueError(f"the checkpoint was trained with model.cameras={saved}, this run has "
+                             f"{self.cameras}; pass --model.cameras {saved}")  # fmt: skip
         self.skip_guard.load_state_dict(
             checkpoint.get("skip_guard", {"total": checkpoint.get("skipped_steps", 0)})
         )
