@@ -212,7 +212,7 @@ def test_bench_command_end_to_end(tmp_path, pretend_gsplat):
     assert rows[0]["psnr"] == rows[1]["psnr"] and rows[2]["gaussians"] <= rows[1]["gaussians"]
     assert (out / "accuracy_vs_time.png").is_file() and (out / "bench.csv").is_file()
     with pytest.raises(SystemExit, match="no shards"):
-        main(["--ckpt", str(ckpt), "--data-root", str(tmp_path / "empty"), "--no-progress"])
+        main(["--ckpt", str(ckpt), "--data-root", str(tmp_path / "empty"), "--no-progress", "--device", "cpu"])
 
 
 @pytest.mark.gpu
