@@ -24,6 +24,7 @@ from .weights import WeightsReport, load_pretrained_weights
 log = logging.getLogger(__name__)
 
 _GROUP_OF = {"appearance": "appearance", "encoder": "backbone"}  # top-level submodule -> optimizer group
+COMPILE_MODES = ("none", "blocks")
 
 
 @dataclass(frozen=True)
@@ -164,6 +165,21 @@ class AESplatModel(nn.Module):
         report = self.weights_report
         return report is not None and any(not k.startswith("transformer.") for k in report.loaded)
 
+    def transformer_blocks(self) -> list[nn.Module]:
+        """Every encoder, frame and global block: the units that ``compile_blocks`` compiles."""
+        t = self.transformer
+        return [*self.encoder.blocks, *t.frame_blocks, *t.global_blocks]
+
+    def compile_blocks(self, **options: Any) -> None:
+        """Compile each encoder and transformer block in place (``nn.Module.compile``): regional compilation.
+
+        Blocks of one kind share their code, so torch compiles each kind once (plus once per new input shape)
+        instead of the whole network; the rest stays eager. In place, so parameter names and ``state_dict``
+        keys do not change (no ``_orig_mod.`` prefix). ``options`` go to ``torch.compile``.
+        """
+        for block in self.transformer_blocks():
+            block.compile(**options)
+
     def named_parameter_groups(self) -> dict[str, list[tuple[str, nn.Parameter]]]:
         """Trainable parameters by optimizer group: ``appearance`` (view-dependent head + GVSRE MLP),
         ``backbone`` (patch encoder) and ``rest``. Every trainable parameter is in exactly one group."""
@@ -277,7 +293,16 @@ class NetConfig:
     far: float = 100.0
     weights: str | None = None  # local DINOv2/timm or VGGT checkpoint file; never downloaded
     options: dict[str, Any] = field(default_factory=dict)  # any other build_model keyword (rope, ...)
+    compile: str = "none"  # none | blocks: torch.compile each encoder / transformer block (first steps slower)
+
+    def __post_init__(self) -> None:
+        if self.compile not in COMPILE_MODES:
+            choices = ", ".join(COMPILE_MODES)
+            raise ValueError(f"unknown model.net.compile {self.compile!r}; choose one of {choices}")
 
     def build(self) -> AESplatModel:
-        return build_model(size=self.size, appearance=self.appearance, sh_degree=self.sh_degree, near=self.near,
-                           far=self.far, weights=self.weights, **self.options)  # fmt: skip
+        model = build_model(size=self.size, appearance=self.appearance, sh_degree=self.sh_degree,
+                            near=self.near, far=self.far, weights=self.weights, **self.options)  # fmt: skip
+        if self.compile == "blocks":
+            model.compile_blocks()
+        return model
