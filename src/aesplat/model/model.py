@@ -35,6 +35,7 @@ class ModelConfig:
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
     head_features: int = 128  # DPT fusion width
     head_channels: tuple[int, int, int, int] = (96, 192, 384, 384)  # DPT reassemble widths, fine to coarse
+    head_precision: str = "fp32"  # fp32 | bf16: the DPT trunks' convolutions under bf16 autocast
     gaussian_feature_dim: int = 64  # Gaussian-head features passed to the view-dependent head
     camera_hidden: int = 256
     appearance: str = "full"
@@ -130,7 +131,8 @@ class AESplatModel(nn.Module):
 
     forward(context_images [B, Vc, 3, H, W], target_images [B, Vt, 3, H, W] | None) -> ModelOutput, images
     float in [0, 1], H and W multiples of 14, Vc >= 2. The encoder and the geometry transformer follow any
-    surrounding autocast; the heads, geometry and appearance always run in float32.
+    surrounding autocast; the heads, geometry and appearance run in float32 (with ``head_precision="bf16"`` the
+    DPT trunks' convolutions run in bf16, their outputs and all that follows in float32).
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -140,14 +142,16 @@ class AESplatModel(nn.Module):
         self.transformer = GeometryTransformer(cfg.encoder.dim, cfg.transformer)
         token_dim = 2 * cfg.transformer.dim
         self.camera_head = CameraHead(token_dim, cfg.camera_hidden)
-        self.depth_head = DepthHead(token_dim, cfg.head_features, cfg.head_channels, cfg.near, cfg.far)
+        self.depth_head = DepthHead(
+            token_dim, cfg.head_features, cfg.head_channels, cfg.near, cfg.far, cfg.head_precision
+        )
         self.appearance = DecoupledAppearance(
             cfg.appearance, cfg.sh_degree, cfg.gaussian_feature_dim, cfg.num_context_views, cfg.gvsre_dim,
             cfg.appearance_hidden,
         )  # fmt: skip
         self.gaussian_head = GaussianHead(
             token_dim, cfg.head_features, cfg.head_channels, cfg.gaussian_feature_dim,
-            self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max,
+            self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max, cfg.head_precision,
         )  # fmt: skip
         self.weights_report: WeightsReport | None = None
         if cfg.weights:
