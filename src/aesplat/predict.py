@@ -228,8 +228,9 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
     if "net" not in hparams or "state_dict" not in ckpt:
         raise ValueError(f"{str(path)!r} is not an aesplat checkpoint (no 'net' hyper-parameters / state_dict)")
     net = dict(hparams["net"])
-    # The trained weights come from the checkpoint, not from the run's pretrained-weights file.
-    model = NetConfig(**{**net, "weights": None}).build()
+    # The trained weights come from the checkpoint, not from the run's pretrained-weights file; a few
+    # inference passes do not pay back a training run's block compilation.
+    model = NetConfig(**{**net, "weights": None, "compile": "none"}).build()
     state = {k[len("model.") :]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
     model.load_state_dict(state, strict=True)
     model.to(device).eval()

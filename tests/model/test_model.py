@@ -296,3 +296,27 @@ def test_given_cameras_are_checked(model, ext_shape, intr_shape, match):
     intrinsics = None if intr_shape is None else torch.eye(3).expand(intr_shape)
     with pytest.raises(ValueError, match=match):
         model(_images(1, 2, 0), extrinsics=torch.eye(4).expand(ext_shape), intrinsics=intrinsics)
+
+
+def test_bf16_head_precision_runs_dpt_trunks_in_bf16_and_the_rest_in_fp32(model):
+    bf16 = build_model("tiny", appearance="full", sh_degree=4, head_precision="bf16")
+    bf16.load_state_dict(model.state_dict())
+    seen = {}
+    trunk_conv, out_conv = bf16.depth_head.dpt.fusion[0].out_conv, bf16.depth_head.out
+    hooks = [
+        trunk_conv.register_forward_hook(lambda m, i, o: seen.update(trunk=o.dtype)),
+        out_conv.register_forward_hook(lambda m, i, o: seen.update(out=o.dtype)),
+    ]
+    images = _images(1, 2, 3)
+    try:
+        with torch.no_grad():
+            got, want = bf16(images), model(images)
+    finally:
+        for hook in hooks:
+            hook.remove()
+    assert seen == {"trunk": torch.bfloat16, "out": torch.float32}
+    assert got.depth.dtype == torch.float32 and not torch.equal(got.depth, want.depth)
+    torch.testing.assert_close(got.depth, want.depth, rtol=1e-2, atol=0)
+    torch.testing.assert_close(got.gaussians.means, want.gaussians.means, rtol=1e-2, atol=1e-3)
+    with pytest.raises(ValueError, match="head precision"):
+        build_model("tiny", head_precision="fp16")

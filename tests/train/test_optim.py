@@ -15,7 +15,10 @@ from aesplat.train.optim import (
     clip_and_check,
     current_learning_rates,
     discard_gradients,
+    resolve_impl,
 )
+
+IMPLS = ("for_loop", "foreach", "fused")
 
 
 @pytest.fixture(scope="module")
@@ -96,11 +99,14 @@ def _adam_snapshot(opt):
     return {id(p): {k: v.clone() for k, v in s.items()} for p, s in opt.state.items()}
 
 
+@pytest.mark.parametrize("impl", IMPLS)
 @pytest.mark.parametrize("poison", ["gradient", "loss"])
-def test_non_finite_step_leaves_params_and_adam_state_bit_identical(poison):
+def test_non_finite_step_leaves_params_and_adam_state_bit_identical(poison, impl):
     model = nn.Sequential(nn.Linear(4, 8), nn.LayerNorm(8), nn.Linear(8, 1))
     named = {"rest": list(model.named_parameters())}
-    opt, _ = build_optimizer(named, OptimConfig(), pretrained_backbone=False, total_steps=10)
+    opt, _ = build_optimizer(named, OptimConfig(impl=impl), pretrained_backbone=False, total_steps=10)
+    assert bool(opt.defaults["fused"]) == (impl == "fused")
+    assert bool(opt.defaults["foreach"]) == (impl == "foreach")
     x = torch.randn(5, 4)
     model(x).pow(2).mean().backward()
     opt.step()  # Adam state exists
@@ -132,3 +138,46 @@ def test_clip_reports_the_unclipped_norm():
     norm, finite = clip_and_check([p], 0.5, torch.tensor(1.0))
     assert finite and norm.item() == pytest.approx(4.0)
     assert p.grad.norm().item() == pytest.approx(0.5, rel=1e-4)
+
+
+def _train_with_a_skipped_step(impl: str):
+    """Five steps of a small two-group model, the third skipped (NaN gradient): parameters and AdamW state."""
+    torch.manual_seed(0)
+    model = nn.Sequential(nn.Linear(4, 8), nn.LayerNorm(8), nn.Linear(8, 2))
+    named = {"rest": list(model[:2].named_parameters()), "appearance": list(model[2].named_parameters())}
+    cfg = OptimConfig(impl=impl, warmup_steps=2)
+    opt, sched = build_optimizer(named, cfg, pretrained_backbone=False, total_steps=5)
+    gen = torch.Generator().manual_seed(1)
+    for step in range(5):
+        opt.zero_grad(set_to_none=True)
+        loss = model(torch.randn(6, 4, generator=gen)).pow(2).mean()
+        loss.backward()
+        if step == 2:
+            model[0].weight.grad[1, 1] = float("nan")
+        _, finite = clip_and_check(model.parameters(), 0.5, loss)
+        assert finite == (step != 2)
+        if not finite:
+            discard_gradients(opt)
+        opt.step()
+        sched.step()
+    return [p.detach().clone() for p in model.parameters()], _adam_snapshot(opt).values()
+
+
+@pytest.mark.parametrize("impl", ["foreach", "fused"])
+def test_fast_kernels_make_the_for_loop_updates(impl):
+    params_ref, state_ref = _train_with_a_skipped_step("for_loop")
+    params, state = _train_with_a_skipped_step(impl)
+    for a, b in zip(params_ref, params):
+        torch.testing.assert_close(b, a, rtol=1e-6, atol=1e-7)
+    for ref, got in zip(state_ref, state):
+        assert float(got["step"]) == float(ref["step"]) == 4.0  # 5 batches, one skipped
+        for key in ("exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(got[key], ref[key], rtol=1e-6, atol=1e-10)
+
+
+def test_auto_impl_is_fused_on_cpu_and_unknown_impl_is_an_error():
+    assert resolve_impl("auto", [torch.zeros(2)]) == "fused"
+    assert resolve_impl("for_loop", [torch.zeros(2)]) == "for_loop"
+    assert resolve_impl("auto", [torch.zeros(2, device="meta")]) == "foreach"
+    with pytest.raises(ValueError, match="optim.impl"):
+        OptimConfig(impl="apex")

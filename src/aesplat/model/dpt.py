@@ -35,14 +35,25 @@ class FusionBlock(nn.Module):
         return self.out_conv(x)
 
 
+HEAD_PRECISIONS = ("fp32", "bf16")
+
+
 class DPT(nn.Module):
     """Dense prediction trunk: 4 token maps on an h x w patch grid -> a feature map [N, features, 8h, 8w].
 
-    The 4 maps are reassembled at 4x, 2x, 1x and 1/2x the patch grid and fused coarse to fine.
+    The 4 maps are reassembled at 4x, 2x, 1x and 1/2x the patch grid and fused coarse to fine. With
+    ``precision="bf16"`` the trunk's convolutions run under bf16 autocast (the feature map is returned in
+    float32); the heads' output layers, and everything geometric after them, stay float32.
     """
 
-    def __init__(self, in_dim: int, features: int, layer_channels: tuple[int, int, int, int]) -> None:
+    def __init__(
+        self, in_dim: int, features: int, layer_channels: tuple[int, int, int, int], precision: str = "fp32"
+    ) -> None:
         super().__init__()
+        if precision not in HEAD_PRECISIONS:
+            choices = ", ".join(HEAD_PRECISIONS)
+            raise ValueError(f"unknown head precision {precision!r}; choose one of {choices}")
+        self.precision = precision
         c = layer_channels
         self.norm = nn.LayerNorm(in_dim)
         self.project = nn.ModuleList(nn.Conv2d(in_dim, ci, 1) for ci in c)
@@ -58,7 +69,12 @@ class DPT(nn.Module):
         self.fusion = nn.ModuleList(FusionBlock(features, has_skip=i < 3) for i in range(4))  # [3]: coarsest
 
     def forward(self, tokens: list[Tensor], grid: tuple[int, int]) -> Tensor:
-        """tokens: 4 maps [N, h·w, in_dim]; grid (h, w) -> [N, features, 8h, 8w]."""
+        """tokens: 4 maps [N, h·w, in_dim]; grid (h, w) -> [N, features, 8h, 8w] float32."""
+        device = tokens[0].device.type
+        with torch.autocast(device_type=device, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            return self._trunk(tokens, grid).float()
+
+    def _trunk(self, tokens: list[Tensor], grid: tuple[int, int]) -> Tensor:
         h, w = grid
         levels = []
         for x, project, resize, rn in zip(tokens, self.project, self.resize, self.layer_rn):
@@ -79,12 +95,12 @@ class DepthHead(nn.Module):
     """
 
     def __init__(self, in_dim: int, features: int, layer_channels: tuple[int, int, int, int], near: float,
-                 far: float) -> None:  # fmt: skip
+                 far: float, precision: str = "fp32") -> None:  # fmt: skip
         super().__init__()
         if not 0 < near < far:
             raise ValueError(f"depth range must satisfy 0 < near < far, got near={near}, far={far}")
         self.log_near, self.log_far = math.log(near), math.log(far)
-        self.dpt = DPT(in_dim, features, layer_channels)
+        self.dpt = DPT(in_dim, features, layer_channels, precision)
         self.neck = nn.Conv2d(features, features // 2, 3, padding=1)
         self.out = nn.Sequential(nn.Conv2d(features // 2, 32, 3, padding=1), nn.ReLU(), nn.Conv2d(32, 1, 1))
 

@@ -47,13 +47,14 @@ class GaussianHead(nn.Module):
         num_sh: int,
         scale_multiplier: float = 0.001,
         scale_max: float = 0.3,
+        precision: str = "fp32",
     ) -> None:
         super().__init__()
         self.num_sh = num_sh
         self.scale_multiplier = scale_multiplier
         self.scale_max = scale_max
         half = features // 2
-        self.dpt = DPT(in_dim, features, layer_channels)
+        self.dpt = DPT(in_dim, features, layer_channels, precision)
         self.neck = nn.Conv2d(features, half, 3, padding=1)
         self.rgb_branch = nn.Sequential(
             nn.Conv2d(3, half, 3, padding=1), nn.ReLU(), nn.Conv2d(half, half, 3, padding=1)

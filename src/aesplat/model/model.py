@@ -24,6 +24,7 @@ from .weights import WeightsReport, load_pretrained_weights
 log = logging.getLogger(__name__)
 
 _GROUP_OF = {"appearance": "appearance", "encoder": "backbone"}  # top-level submodule -> optimizer group
+COMPILE_MODES = ("none", "blocks")
 
 # Where a run's cameras come from (``model.cameras``): the camera head (the method: pose-free), or the data
 # set's poses and intrinsics (posed training; the appearance model measured without the pose head).
@@ -39,6 +40,7 @@ class ModelConfig:
     transformer: TransformerConfig = field(default_factory=TransformerConfig)
     head_features: int = 128  # DPT fusion width
     head_channels: tuple[int, int, int, int] = (96, 192, 384, 384)  # DPT reassemble widths, fine to coarse
+    head_precision: str = "fp32"  # fp32 | bf16: the DPT trunks' convolutions under bf16 autocast
     gaussian_feature_dim: int = 64  # Gaussian-head features passed to the view-dependent head
     camera_hidden: int = 256
     appearance: str = "full"
@@ -134,7 +136,8 @@ class AESplatModel(nn.Module):
 
     forward(context_images [B, Vc, 3, H, W], target_images [B, Vt, 3, H, W] | None) -> ModelOutput, images
     float in [0, 1], H and W multiples of 14, Vc >= 2. The encoder and the geometry transformer follow any
-    surrounding autocast; the heads, geometry and appearance always run in float32.
+    surrounding autocast; the heads, geometry and appearance run in float32 (with ``head_precision="bf16"`` the
+    DPT trunks' convolutions run in bf16, their outputs and all that follows in float32).
 
     forward(context_images, extrinsics=E, intrinsics=K) uses the cameras E [B, V, 4, 4] (camera-to-world in
     context view 0's frame) and K [B, V, 3, 3] (normalised) instead of the camera head's, which does not run;
@@ -149,14 +152,16 @@ class AESplatModel(nn.Module):
         self.transformer = GeometryTransformer(cfg.encoder.dim, cfg.transformer)
         token_dim = 2 * cfg.transformer.dim
         self.camera_head = CameraHead(token_dim, cfg.camera_hidden)
-        self.depth_head = DepthHead(token_dim, cfg.head_features, cfg.head_channels, cfg.near, cfg.far)
+        self.depth_head = DepthHead(
+            token_dim, cfg.head_features, cfg.head_channels, cfg.near, cfg.far, cfg.head_precision
+        )
         self.appearance = DecoupledAppearance(
             cfg.appearance, cfg.sh_degree, cfg.gaussian_feature_dim, cfg.num_context_views, cfg.gvsre_dim,
             cfg.appearance_hidden,
         )  # fmt: skip
         self.gaussian_head = GaussianHead(
             token_dim, cfg.head_features, cfg.head_channels, cfg.gaussian_feature_dim,
-            self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max,
+            self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max, cfg.head_precision,
         )  # fmt: skip
         self.weights_report: WeightsReport | None = None
         if cfg.weights:
@@ -173,6 +178,21 @@ class AESplatModel(nn.Module):
         """Whether pretrained encoder weights were loaded (training gives them a lower learning rate)."""
         report = self.weights_report
         return report is not None and any(not k.startswith("transformer.") for k in report.loaded)
+
+    def transformer_blocks(self) -> list[nn.Module]:
+        """Every encoder, frame and global block: the units that ``compile_blocks`` compiles."""
+        t = self.transformer
+        return [*self.encoder.blocks, *t.frame_blocks, *t.global_blocks]
+
+    def compile_blocks(self, **options: Any) -> None:
+        """Compile each encoder and transformer block in place (``nn.Module.compile``): regional compilation.
+
+        Blocks of one kind share their code, so torch compiles each kind once (plus once per new input shape)
+        instead of the whole network; the rest stays eager. In place, so parameter names and ``state_dict``
+        keys do not change (no ``_orig_mod.`` prefix). ``options`` go to ``torch.compile``.
+        """
+        for block in self.transformer_blocks():
+            block.compile(**options)
 
     def named_parameter_groups(self) -> dict[str, list[tuple[str, nn.Parameter]]]:
         """Trainable parameters by optimizer group: ``appearance`` (view-dependent head + GVSRE MLP),
@@ -339,10 +359,19 @@ class NetConfig:
     far: float = 100.0
     weights: str | None = None  # local DINOv2/timm or VGGT checkpoint file; never downloaded
     options: dict[str, Any] = field(default_factory=dict)  # any other build_model keyword (rope, ...)
+    compile: str = "none"  # none | blocks: torch.compile each encoder / transformer block (first steps slower)
+
+    def __post_init__(self) -> None:
+        if self.compile not in COMPILE_MODES:
+            choices = ", ".join(COMPILE_MODES)
+            raise ValueError(f"unknown model.net.compile {self.compile!r}; choose one of {choices}")
 
     def build(self) -> AESplatModel:
-        return build_model(size=self.size, appearance=self.appearance, sh_degree=self.sh_degree, near=self.near,
-                           far=self.far, weights=self.weights, **self.options)  # fmt: skip
+        model = build_model(size=self.size, appearance=self.appearance, sh_degree=self.sh_degree,
+                            near=self.near, far=self.far, weights=self.weights, **self.options)  # fmt: skip
+        if self.compile == "blocks":
+            model.compile_blocks()
+        return model
 
     def random_backbone_warning(self) -> str | None:
         """What `aesplat fit` says when a paper-scale network (base, large) has no weights to start from."""

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from .layers import Block, RoPE2D, init_weights
+from .layers import Block, RoPE2D, RopeTables, init_weights
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ class GeometryTransformer(nn.Module):
         self.rope = RoPE2D(d // cfg.num_heads) if cfg.rope else None
 
         def block() -> Block:
-            return Block(d, cfg.num_heads, cfg.mlp_ratio, 0.01, qk_norm=cfg.qk_norm, rope=self.rope)
+            return Block(d, cfg.num_heads, cfg.mlp_ratio, 0.01, qk_norm=cfg.qk_norm)
 
         self.frame_blocks = nn.ModuleList(block() for _ in range(cfg.depth))
         self.global_blocks = nn.ModuleList(block() for _ in range(cfg.depth))
@@ -80,20 +80,21 @@ class GeometryTransformer(nn.Module):
         b, v, p, _ = patch_tokens.shape
         x = torch.cat([self._special_tokens(b, v).to(patch_tokens.dtype), self.input_proj(patch_tokens)], dim=2)
         t = x.shape[2]
-        pos = self._positions(*grid, device=x.device)
-        pos_all = pos.repeat(v, 1)
+        # computed once here and shared by all blocks: one view's tokens, and all views' tokens in a row
+        rope = self.rope.tables(self._positions(*grid, device=x.device)) if self.rope is not None else None
+        rope_all = rope.repeat(v) if rope is not None else None
         outputs: list[Tensor] = []
         for i, (frame, global_) in enumerate(zip(self.frame_blocks, self.global_blocks)):
-            x = frame(x.reshape(b * v, t, -1), pos=pos).reshape(b, v, t, -1)
+            x = frame(x.reshape(b * v, t, -1), rope=rope).reshape(b, v, t, -1)
             frame_out = x
-            x = self.masked_global_attention(global_, x, pos_all, num_context)
+            x = self.masked_global_attention(global_, x, rope_all, num_context)
             if i in self.layers:
                 outputs.append(torch.cat([frame_out, x], dim=-1))
         return outputs
 
     @staticmethod
-    def masked_global_attention(block: Block, x: Tensor, pos: Tensor, num_context: int) -> Tensor:
+    def masked_global_attention(block: Block, x: Tensor, rope: RopeTables | None, num_context: int) -> Tensor:
         """One global block over all views' tokens [B, V, T, D]; context tokens attend to context only."""
         b, v, t, d = x.shape
-        out = block(x.reshape(b, v * t, d), pos=pos, num_context=num_context * t)
+        out = block(x.reshape(b, v * t, d), rope=rope, num_context=num_context * t)
         return out.reshape(b, v, t, d)

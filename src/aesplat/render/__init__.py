@@ -1,6 +1,6 @@
 """The rasterizer: one interface (``render``), a registry of backends (torch, gsplat), render statistics."""
 
-from .gsplat_backend import FoldedGaussians, fold_cameras
+from .gsplat_backend import fold_intrinsics, reference_intrinsics
 from .interface import (
     BACKENDS,
     RenderSettings,
@@ -14,13 +14,13 @@ from .projection import active_sh_degree
 
 __all__ = [
     "BACKENDS",
-    "FoldedGaussians",
     "RenderSettings",
     "RenderStats",
     "active_sh_degree",
-    "fold_cameras",
+    "fold_intrinsics",
     "get_backend",
     "gsplat_available",
     "render",
+    "reference_intrinsics",
     "render_with_stats",
 ]

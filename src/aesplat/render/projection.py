@@ -127,7 +127,7 @@ def project_gaussians(
     """Cull and project every Gaussian into every camera of its batch element.
 
     ``sh_degree`` is the number of SH bands evaluated (0 evaluates only the DC term, no basis at all).
-    ``covariances`` and ``colors`` serve pre-transformed Gaussians (see ``gsplat_backend.fold_cameras``).
+    ``covariances`` and ``colors`` serve pre-transformed Gaussians (the tests' emulation of gsplat uses them).
     """
     b, n = gaussians.means.shape[:2]
     v = extrinsics.shape[1]

@@ -5,6 +5,10 @@ Groups come from the model's ``named_parameter_groups()`` (keys ``appearance``, 
 *pretrained* ``backbone`` at a fraction of it. Each group is split once more into a weight-decay part and a
 no-decay part (norms, biases, tokens), so every trainable parameter sits in exactly one optimizer group.
 When skipped steps stop being rare, ``skip_guard.SkipGuard`` ends the run.
+
+``impl`` picks torch's AdamW kernel: ``fused`` (one kernel over all parameters; CUDA and CPU since torch 2.4),
+``foreach`` (multi-tensor ops) or ``for_loop`` (one parameter at a time, the reference). All three skip a
+parameter whose ``grad`` is None, which is what the non-finite step guard relies on.
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ import torch
 from torch import Tensor, nn
 
 GROUP_NAMES = ("appearance", "backbone", "rest")
+OPTIM_IMPLS = ("auto", "fused", "foreach", "for_loop")
+_FUSED_DEVICES = ("cuda", "cpu")  # device types with a fused AdamW kernel in every supported torch (>= 2.4)
 _NO_DECAY_WORDS = ("norm", "bias", "token", "pos_embed", "register", "embedding")
 
 
@@ -38,6 +44,11 @@ class OptimConfig:
     skip_window: int = 100
     max_consecutive_skips: int = 10  # stop after this many skipped steps in a row; 0 disables
     anomaly_report: bool = True  # re-run the first skipped step under anomaly detection and report the op
+    impl: str = "auto"  # auto | fused | foreach | for_loop; auto = fused on CUDA and CPU, else foreach
+
+    def __post_init__(self) -> None:
+        if self.impl not in OPTIM_IMPLS:
+            raise ValueError(f"unknown optim.impl {self.impl!r}; choose one of {', '.join(OPTIM_IMPLS)}")
 
 
 def uses_weight_decay(name: str, param: Tensor) -> bool:
@@ -83,6 +94,17 @@ def build_param_groups(
     return groups
 
 
+def resolve_impl(impl: str, params: Iterable[Tensor]) -> str:
+    """The AdamW kernel to use: ``impl`` itself, or for ``auto`` fused when every parameter lives on a device
+    type with a fused kernel (CUDA, CPU), else foreach."""
+    if impl not in OPTIM_IMPLS:
+        raise ValueError(f"unknown optim.impl {impl!r}; choose one of {', '.join(OPTIM_IMPLS)}")
+    if impl != "auto":
+        return impl
+    devices = {p.device.type for p in params}
+    return "fused" if devices and devices <= set(_FUSED_DEVICES) else "foreach"
+
+
 class WarmupCosine:
     """Learning-rate multiplier: linear warm-up from ~0 to 1, then cosine decay to ``min_ratio``.
 
@@ -109,10 +131,13 @@ def build_optimizer(
 ) -> tuple[torch.optim.AdamW, torch.optim.lr_scheduler.LambdaLR]:
     """One AdamW over the named groups and its per-step warm-up + cosine scheduler.
 
-    The cosine spans ``cfg.total_steps``, else ``total_steps`` (the trainer's max_steps).
+    The cosine spans ``cfg.total_steps``, else ``total_steps`` (the trainer's max_steps). Build it after the
+    parameters are on their device: ``impl: auto`` looks at where they live.
     """
     groups = build_param_groups(named_groups, cfg, pretrained_backbone)
-    optimizer = torch.optim.AdamW(groups, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay)
+    impl = resolve_impl(cfg.impl, (p for g in groups for p in g["params"]))
+    kernel = {"fused": {"fused": True}, "foreach": {"foreach": True}, "for_loop": {"foreach": False}}[impl]
+    optimizer = torch.optim.AdamW(groups, betas=tuple(cfg.betas), weight_decay=cfg.weight_decay, **kernel)
     length = cfg.total_steps or total_steps
     if not length or length < 0:
         raise ValueError("the cosine schedule needs a length: set trainer.max_steps or model.optim.total_steps")
@@ -144,7 +169,8 @@ def clip_and_check(parameters: Iterable[Tensor], max_norm: float, loss: Tensor) 
 def discard_gradients(optimizer: torch.optim.Optimizer) -> None:
     """Drop every gradient so the following ``optimizer.step()`` changes nothing.
 
-    AdamW skips parameters whose ``grad`` is None: parameters, moments and step counts stay bit-identical,
-    while the trainer still counts the step (schedule and curriculum stay aligned with batches).
+    AdamW (for-loop, foreach and fused alike) skips parameters whose ``grad`` is None: parameters, moments
+    and step counts stay bit-identical, while the trainer still counts the step (schedule and curriculum stay
+    aligned with batches).
     """
     optimizer.zero_grad(set_to_none=True)
