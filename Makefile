@@ -45,11 +45,11 @@ DEMO_ARGS := -c $(DEMO_CONFIG) --data.root $(DEMO_DIR)/shards --data.image_size 
 # Extra data_prep/synthetic.py options, e.g. DEMO_SCENE_ARGS="--texture-scale 1 --turn-scale 1" for the default scenes.
 DEMO_SCENE_ARGS ?=
 DEMO_FIT_ARGS ?=  # extra `aesplat fit` overrides, e.g. DEMO_FIT_ARGS="--trainer.max_steps 200"
-# DEMO_DIAGNOSE=1 (default) also trains the same model with ground-truth poses in place of the camera head's
-# (scripts/ground_truth_cameras.py; about two more minutes) so the report can say what the pose head costs.
+# DEMO_DIAGNOSE=1 (default) also trains the same model with the data set's cameras in place of the camera head's
+# (`--model.cameras dataset`; about two more minutes) so the report can say what learning the cameras costs.
+# Its trained checkpoint is tested without the flag: `aesplat test --ckpt_path` reads model.cameras from it.
 DEMO_DIAGNOSE ?= 1
-DEMO_GT := $(DEMO_DIR)/gt_poses
-GT_POSES := scripts/ground_truth_cameras.py
+DEMO_POSED := $(DEMO_DIR)/posed
 AESPLAT := $(VENV)/bin/aesplat
 # Lightning's CSV logger writes metrics.csv (the loss curve: every step) and config.yaml into the run directory.
 DEMO_LOG := --trainer.logger+=CSVLogger --trainer.logger.save_dir $(DEMO_RUN) --trainer.logger.name "" \
@@ -58,7 +58,7 @@ DEMO_LOG := --trainer.logger+=CSVLogger --trainer.logger.save_dir $(DEMO_RUN) --
 timed = echo "$(1),$$(( $$(date +%s) - t0 ))" >> $(DEMO_TIMES)
 
 demo: $(STAMP)
-	rm -rf $(DEMO_RUN) $(DEMO_DIR)/initial $(DEMO_DIR)/bench $(DEMO_GT)
+	rm -rf $(DEMO_RUN) $(DEMO_DIR)/initial $(DEMO_DIR)/bench $(DEMO_POSED)
 	mkdir -p $(DEMO_DIR) && echo "stage,seconds" > $(DEMO_TIMES)
 	t0=$$(date +%s); $(PY) data_prep/synthetic.py --out $(DEMO_DIR)/src $(DEMO_SCENE_ARGS) \
 		&& $(call timed,synthetic scenes)
@@ -73,17 +73,19 @@ demo: $(STAMP)
 	t0=$$(date +%s); $(AESPLAT) bench --ckpt $(DEMO_CKPT) --out $(DEMO_DIR)/bench --scenes 2 --repeats 3 \
 		&& $(call timed,aesplat bench)
 ifeq ($(DEMO_DIAGNOSE),1)
-	t0=$$(date +%s); $(PY) $(GT_POSES) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_GT)/initial \
-		--trainer.logger false && $(call timed,diagnostic: test with ground-truth poses (untrained))
-	t0=$$(date +%s); $(PY) $(GT_POSES) fit $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_GT)/run \
-		--trainer.logger false $(DEMO_FIT_ARGS) && $(call timed,diagnostic: fit with ground-truth poses)
-	t0=$$(date +%s); $(PY) $(GT_POSES) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_GT)/run \
-		--trainer.logger false --ckpt_path $(DEMO_GT)/run/checkpoints/last.ckpt \
-		&& $(call timed,diagnostic: test with ground-truth poses (trained))
+	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --model.cameras dataset \
+		--trainer.default_root_dir $(DEMO_POSED)/initial --trainer.logger false \
+		&& $(call timed,diagnostic: test with the data set's cameras (untrained))
+	t0=$$(date +%s); $(AESPLAT) fit $(DEMO_ARGS) --model.cameras dataset --trainer.default_root_dir $(DEMO_POSED)/run \
+		--trainer.logger false $(DEMO_FIT_ARGS) && $(call timed,diagnostic: fit with the data set's cameras)
+	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_POSED)/run \
+		--trainer.logger false --ckpt_path $(DEMO_POSED)/run/checkpoints/last.ckpt \
+		&& $(call timed,diagnostic: test with the data set's cameras (trained))
 endif
 	$(PY) scripts/demo_report.py --run-dir $(DEMO_RUN) --initial $(DEMO_DIR)/initial/test \
 		--bench $(DEMO_DIR)/bench --timings $(DEMO_TIMES) --out $(DEMO_DIR) \
-		$(if $(filter 1,$(DEMO_DIAGNOSE)),--gt-initial $(DEMO_GT)/initial/test --gt-trained $(DEMO_GT)/run/test)
+		$(if $(filter 1,$(DEMO_DIAGNOSE)),--posed-initial $(DEMO_POSED)/initial/test \
+		--posed-trained $(DEMO_POSED)/run/test)
 
 # `make bench [CKPT=...] [BENCH_OUT=...]`: accuracy versus time of a trained checkpoint (default: the demo's).
 CKPT ?= $(DEMO_CKPT)

@@ -32,10 +32,12 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
 from aesplat.bench import evaluation_scenes  # noqa: E402
+from aesplat.model import forward_batch  # noqa: E402
 from aesplat.predict import LoadedCheckpoint, colorize_depth, load_checkpoint, run_config  # noqa: E402
 from aesplat.render import render  # noqa: E402
 from aesplat.train.metrics import context_copy_psnr, psnr  # noqa: E402
 
+CAMERAS = {"predicted": "*predicted* target cameras", "dataset": "data set's target cameras"}  # model.cameras
 METRIC_ROWS = [  # key in summary.json, label, format, True when higher is better
     ("psnr", "PSNR (dB) ↑", "{:.2f}", True),
     ("ssim", "SSIM ↑", "{:.4f}", True),
@@ -120,7 +122,8 @@ def initial_model(config: dict, device: torch.device) -> torch.nn.Module:
 
 @torch.no_grad()
 def render_grid(trained: LoadedCheckpoint, untrained: torch.nn.Module, scenes: list, path: Path) -> dict:
-    """Rows of context | target | untrained render | trained render | trained depth; returns per-scene PSNRs."""
+    """Rows of context | target | untrained render | trained render | trained depth; returns per-scene PSNRs.
+    Both models render with the trained run's cameras (``model.cameras``: predicted or the data set's)."""
     columns = ["context 0", "context 1", "target", "untrained render", "trained render", "rendered depth"]
     fig, axes = plt.subplots(len(scenes), len(columns), figsize=(2.2 * len(columns), 2.3 * len(scenes)),
                              squeeze=False)  # fmt: skip
@@ -132,7 +135,7 @@ def render_grid(trained: LoadedCheckpoint, untrained: torch.nn.Module, scenes: l
         size = tgt.shape[-1]
         tiles, values = [ctx[0, 0], ctx[0, 1], tgt[0, 0]], {}
         for name, model in (("untrained", untrained), ("trained", trained.model)):
-            out = model(ctx, tgt)
+            out = forward_batch(model, scene, trained.cameras)
             vc = ctx.shape[1]
             rendered = render(out.gaussians, out.extrinsics[:, vc:], out.intrinsics[:, vc:], size, size,
                               **options)  # fmt: skip
@@ -152,7 +155,8 @@ def render_grid(trained: LoadedCheckpoint, untrained: torch.nn.Module, scenes: l
                 ax.set_ylabel(scene.scene[0][:18], fontsize=7)
         axes[row, 3].set_xlabel(f"{values['untrained']:.2f} dB", fontsize=8)
         axes[row, 4].set_xlabel(f"{values['trained']:.2f} dB", fontsize=8)
-    title = "test scenes: renders of the first target view with the predicted cameras (PSNR over all targets)"
+    title = (f"test scenes: renders of the first target view with the {CAMERAS[trained.cameras]} "
+             "(PSNR over all targets)")  # fmt: skip
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -232,23 +236,24 @@ def bucket_table(initial: dict, trained: dict) -> list[str]:
     return lines
 
 
-def ground_truth_pose_section(initial: dict, trained: dict, gt_initial: Path | None, gt_trained: Path | None):
-    """The diagnostic run with ground-truth poses next to the method's run (empty when it did not run)."""
-    if gt_initial is None or gt_trained is None:
+def posed_section(initial: dict, trained: dict, posed_initial: Path | None, posed_trained: Path | None):
+    """The diagnostic run with the data set's cameras next to the method's run (empty when it did not run)."""
+    if posed_initial is None or posed_trained is None:
         return []
-    if not ((gt_initial / "summary.json").is_file() and (gt_trained / "summary.json").is_file()):
-        return ["(The ground-truth-pose diagnostic did not finish: no summary.json under "
-                f"`{gt_initial}` and `{gt_trained}`.)", ""]  # fmt: skip
-    gt0, gt1 = read_summary(gt_initial)["metrics"], read_summary(gt_trained)["metrics"]
-    rows = [("predicted poses (the method)", initial["metrics"], trained["metrics"]),
-            ("ground-truth poses (diagnostic)", gt0, gt1)]  # fmt: skip
+    if not ((posed_initial / "summary.json").is_file() and (posed_trained / "summary.json").is_file()):
+        return ["(The posed diagnostic did not finish: no summary.json under "
+                f"`{posed_initial}` and `{posed_trained}`.)", ""]  # fmt: skip
+    posed0, posed1 = read_summary(posed_initial)["metrics"], read_summary(posed_trained)["metrics"]
+    rows = [("predicted cameras (the method)", initial["metrics"], trained["metrics"]),
+            ("the data set's cameras (`model.cameras: dataset`)", posed0, posed1)]  # fmt: skip
     lines = [
-        "## Diagnostic: the same training with ground-truth poses",
+        "## Diagnostic: the same training with the data set's cameras",
         "",
-        "`scripts/ground_truth_cameras.py` trains and tests the same model with the same settings, but with "
-        "the data set's relative poses in place of the camera head's. This is not the method (AESplat never "
-        "sees a ground-truth pose in training); the gap between the two rows is what learning the poses costs "
-        "here.",
+        "`aesplat fit|test ... --model.cameras dataset` trains and tests the same model with the same "
+        "settings, but with the data set's cameras (poses relative to context view 0, and intrinsics) in "
+        "place of the camera head's. This is not the method (AESplat never sees a ground-truth pose in "
+        "training); the gap between the two rows is what learning the cameras costs here. No pose is "
+        "predicted in the second row, so none is scored (n/a).",
         "",
         "| run | untrained PSNR | trained PSNR | gain | trained rotation error (°) "
         "| trained translation error (°) |",
@@ -260,8 +265,8 @@ def ground_truth_pose_section(initial: dict, trained: dict, gt_initial: Path | N
             f"{fmt(after.get('rot_err_deg'), '{:.2f}')} | {fmt(after.get('trans_err_deg'), '{:.1f}')} |"
         )
     method_gain = trained["metrics"]["psnr"] - initial["metrics"]["psnr"]
-    if gt1["psnr"] - gt0["psnr"] > method_gain + 2.0:
-        lines += ["", "With the poses given, the depth and Gaussian heads learn far more in the same steps: "
+    if posed1["psnr"] - posed0["psnr"] > method_gain + 2.0:
+        lines += ["", "With the cameras given, the depth and Gaussian heads learn far more in the same steps: "
                   "the pose head is what limits this run."]  # fmt: skip
     return lines + [""]
 
@@ -276,10 +281,10 @@ def main(argv: list[str] | None = None) -> int:
                         "(default: RUN_DIR/test)")  # fmt: skip
     parser.add_argument("--bench", type=Path, default=None, help="`aesplat bench` output folder, if it ran")
     parser.add_argument("--timings", type=Path, default=None, help="CSV stage,seconds written by `make demo`")
-    parser.add_argument("--gt-initial", type=Path, default=None, help="`scripts/ground_truth_cameras.py test` "
-                        "output of the untrained model (diagnostic, optional)")  # fmt: skip
-    parser.add_argument("--gt-trained", type=Path, default=None, help="the same for the model trained with "
-                        "ground-truth poses")  # fmt: skip
+    parser.add_argument("--posed-initial", type=Path, default=None, help="`aesplat test --model.cameras "
+                        "dataset` output of the untrained model (diagnostic, optional)")  # fmt: skip
+    parser.add_argument("--posed-trained", type=Path, default=None, help="the same for the model trained with "
+                        "`--model.cameras dataset`")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"), help="report folder")
     parser.add_argument("--scenes", type=int, default=4, help="test scenes in the render grid")
     args = parser.parse_args(argv)
@@ -333,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         *metrics_table(initial, trained),
         "",
         "Image metrics are averaged per image over every target view of the test split, rendered with the "
-        "*predicted* target cameras; pose errors are angles against the ground-truth relative poses. "
+        f"{CAMERAS[loaded.cameras]}; pose errors are angles against the ground-truth relative poses. "
         + (f"LPIPS: {trained['unavailable']['lpips']}." if trained.get("unavailable", {}).get("lpips") else ""),
         "",
         *bucket_table(initial, trained),
@@ -344,12 +349,13 @@ def main(argv: list[str] | None = None) -> int:
         "| --- | ---: |",
         *[f"| {name} | {value:.2f} |" for name, value in baselines.items()],
         "",
-        *ground_truth_pose_section(initial, trained, args.gt_initial, args.gt_trained),
+        *posed_section(initial, trained, args.posed_initial, args.posed_trained),
         "## Setup",
         "",
         f"- model: `{net.get('size')}` ({params / 1e6:.2f} M parameters), "
         f"appearance `{net.get('appearance')}`, "
-        f"SH degree {net.get('sh_degree')}, depth range {net.get('near')}–{net.get('far')}",
+        f"SH degree {net.get('sh_degree')}, depth range {net.get('near')}–{net.get('far')}, "
+        f"cameras `{loaded.cameras}` (`model.cameras`)",
         f"- data: synthetic scenes from `{data.get('root')}`, {data.get('image_size')}² px, "
         f"batch {data.get('batch_size')}, {data.get('num_context_views', 2)} context + "
         f"{data.get('num_target_views', 1)} target view(s) per training sample",

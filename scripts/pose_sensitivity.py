@@ -7,14 +7,16 @@ at the model's own poses points towards the true rotation.
 
 For each target view of the first ``--scenes`` test scenes it measures
 
-1. **Yaw landscape**: PSNR of the render when every view has its ground-truth relative pose, except that the
-   target's camera is turned about its own y axis by each offset (degrees). A steep peak at 0 says how
-   precisely the camera head must predict rotation before sharp renders pay off.
-2. **Downhill agreement**: with the model's own predicted poses, the target's loss at yaw +/- ``--step``
+1. **Yaw landscape**: PSNR of the render when every view has the data set's camera (pose relative to context
+   view 0, and intrinsics), except that the target's camera is turned about its own y axis by each offset
+   (degrees). A steep peak at 0 says how precisely the camera head must predict rotation before sharp
+   renders pay off.
+2. **Downhill agreement**: with the model's own predicted cameras, the target's loss at yaw +/- ``--step``
    degrees. The loss "points the right way" when it falls towards the ground-truth yaw. If that holds for
    about half of the views, the photometric gradient on rotation is noise at this state of the model.
 
-Works with checkpoints of ``aesplat fit`` and of ``scripts/ground_truth_cameras.py``.
+Works with checkpoints of ``aesplat fit`` with either ``model.cameras``. The camera head of a
+``model.cameras: dataset`` checkpoint never trained; its downhill figures describe that untrained head.
 """
 
 from __future__ import annotations
@@ -29,24 +31,16 @@ import torch
 from torch import Tensor
 
 from aesplat.data import DataModule
-from aesplat.geometry import relative_to_first
+from aesplat.model import forward_batch
 from aesplat.render import render
 from aesplat.train import AESplatModule
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from ground_truth_cameras import PosesFromBatch  # noqa: E402  (a sibling script, not a package)
-
-WRAPPED = "model.camera_head.head."  # key prefix of checkpoints written by ground_truth_cameras.py
-
 
 def load_module(path: str | Path) -> AESplatModule:
-    """An AESplatModule from either kind of checkpoint, on the CPU, in eval mode."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    state = {k.replace(WRAPPED, "model.camera_head."): v for k, v in ckpt["state_dict"].items()}
-    hparams = dict(ckpt["hyper_parameters"])
-    hparams["loss"] = {**hparams.get("loss", {}), "lpips_weight": 0.0}  # only MSE is measured: no VGG needed
-    module = AESplatModule(**hparams)
-    module.load_state_dict(state)
+    """The AESplatModule of an ``aesplat fit`` checkpoint, on the CPU, in eval mode."""
+    # Only MSE is measured: no VGG weights needed.
+    module = AESplatModule.load_from_checkpoint(path, map_location="cpu", loss={"lpips_weight": 0.0},
+                                                eval={"metrics_lpips": False})  # fmt: skip
     return module.eval()
 
 
@@ -69,18 +63,6 @@ def turn_yaw(pose: Tensor, degrees: float) -> Tensor:
     return turned
 
 
-def _forward(module: AESplatModule, batch, poses: Tensor | None = None):
-    """The model's output for ``batch``, with the camera head's poses or with ``poses`` [B, V, 4, 4]."""
-    head = module.model.camera_head
-    if poses is not None:
-        module.model.camera_head = PosesFromBatch(head)
-        module.model.camera_head.poses = poses
-    try:
-        return module.model(batch.context.images, batch.target.images)
-    finally:
-        module.model.camera_head = head
-
-
 def _mse(module: AESplatModule, gaussians, extrinsics: Tensor, intrinsics: Tensor, image: Tensor) -> float:
     h, w = image.shape[-2:]
     background = torch.tensor(module.render_cfg.background)
@@ -95,8 +77,9 @@ def measure(module: AESplatModule, batches, offsets: list[float], step: float = 
     for batch in batches:
         batch = module.on_after_batch_transfer(batch, 0)
         vc = batch.context.num_views
-        truth = relative_to_first(torch.cat([batch.context.extrinsics, batch.target.extrinsics], 1).float())
-        own, true = _forward(module, batch), _forward(module, batch, truth)
+        own = forward_batch(module.model, batch, "predicted")  # the camera head's cameras
+        true = forward_batch(module.model, batch, "dataset")
+        truth = true.extrinsics  # [B, Vc + Vt, 4, 4] the data set's poses relative to context view 0
         for t in range(batch.target.num_views):
             v, image = vc + t, batch.target.images[:, t]
             landscape.append([_mse(module, true.gaussians, turn_yaw(truth[:, v : v + 1], d),
@@ -119,7 +102,7 @@ def measure(module: AESplatModule, batches, offsets: list[float], step: float = 
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--ckpt", required=True, help="checkpoint of aesplat fit or scripts/ground_truth_cameras.py")
+    p.add_argument("--ckpt", required=True, help="checkpoint of aesplat fit (either model.cameras)")
     p.add_argument("--data-root", required=True, help="shard folder with test/ (data_prep/to_shards.py)")
     p.add_argument("--image-size", type=int, default=42, help="model input size (default 42, the demo's)")
     p.add_argument("--scenes", type=int, default=12, help="test scenes to use (default 12)")

@@ -21,7 +21,7 @@ from aesplat.bench import (
     resize_views,
     write_report,
 )
-from aesplat.model import build_model
+from aesplat.model import build_model, dataset_cameras
 from aesplat.render import render
 from aesplat.train.metrics import psnr
 from aesplat.types import BatchedExample, BatchedViews
@@ -125,6 +125,20 @@ def test_bench_figures_match_a_direct_render(model, scenes):
         assert r.forward_ms > 0 and r.render_ms > 0 and r.total_ms == pytest.approx(r.forward_ms + r.render_ms)
     # Only the forward key (input size, precision) triggers model runs: one here for all points.
     assert len(bench._forwards) == 1
+
+
+def test_bench_with_the_data_sets_cameras_renders_from_them(model, scenes):
+    """A checkpoint trained with model.cameras=dataset is measured with each scene's own target cameras."""
+    turned = torch.eye(4).repeat(1, 2, 1, 1)
+    turned[0, 1, :3, 3] = torch.tensor([0.3, -0.1, 0.2])
+    scene = replace(scenes[0], target=replace(scenes[0].target, extrinsics=turned))
+    setting = Setting()
+    (fwd,) = Bench(model, [scene], torch.device("cpu"), repeats=1, warmup=0, progress=False,
+                   cameras="dataset").forward(setting)  # fmt: skip
+    extrinsics, intrinsics = dataset_cameras(scene)
+    assert torch.equal(fwd.extrinsics, extrinsics[:, 2:]) and torch.equal(fwd.intrinsics, intrinsics[:, 2:])
+    (own,) = Bench(model, [scene], torch.device("cpu"), repeats=1, warmup=0, progress=False).forward(setting)
+    assert not torch.equal(own.extrinsics, fwd.extrinsics)  # the camera head predicts something else
 
 
 def test_input_size_and_precision_run_their_own_forward(model, scenes):

@@ -80,6 +80,24 @@ def test_print_config_applies_overlays_and_dotted_overrides(capsys):
     text = print_config(capsys, "fit", "-c", "conf/smoke.yaml", "--model.loss.lpips_weight", "0.2",
                         "--trainer.max_steps", "7")  # fmt: skip
     assert "lpips_weight: 0.2" in text and "max_steps: 7" in text
+    assert "cameras: predicted" in text  # the method (pose-free) is the default
+
+
+def test_posed_fit_saves_loads_and_tests_through_plain_test(shards, tmp_path):
+    """`--model.cameras dataset` trains with the data set's cameras, the checkpoint and the run's config say
+    so, and a plain `aesplat test` of that checkpoint evaluates it with the data set's cameras too."""
+    run_dir = tmp_path / "posed"
+    common = ["-c", "conf/smoke.yaml", "--data.root", str(shards), "--trainer.default_root_dir", str(run_dir)]
+    run_aesplat("fit", *common, "--model.cameras", "dataset", "--trainer.max_steps", "2",
+                "--last_checkpoint.every_n_train_steps", "2")  # fmt: skip
+    last = run_dir / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=True, map_location="cpu")["hyper_parameters"]["cameras"] == "dataset"
+    assert "cameras: dataset" in (run_dir / "config.yaml").read_text()
+
+    run_aesplat("test", *common, "--ckpt_path", str(last))  # the config says predicted; the checkpoint wins
+    summary = json.loads((run_dir / "test" / "summary.json").read_text())
+    assert summary["cameras"] == "dataset" and summary["num_scenes"] == 2 and summary["metrics"]["psnr"] > 5
+    assert summary["metrics"]["rot_err_deg"] is None  # no pose was predicted, so none is scored
 
 
 @pytest.mark.parametrize("config", CONFIGS, ids=str)

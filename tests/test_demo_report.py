@@ -1,4 +1,4 @@
-"""scripts/demo_report.py: the ground-truth-pose diagnostic section of the demo report."""
+"""scripts/demo_report.py: the posed diagnostic section (`model.cameras: dataset`) of the demo report."""
 
 import json
 from pathlib import Path
@@ -10,7 +10,7 @@ def _report_module():
     return load_script("demo_report")
 
 
-def _summary(folder: Path, psnr: float, rot: float, trans: float) -> dict:
+def _summary(folder: Path, psnr: float, rot: float | None, trans: float | None) -> dict:
     folder.mkdir(parents=True)
     summary = {"num_scenes": 3, "metrics": {"psnr": psnr, "ssim": 0.5, "lpips": None, "rot_err_deg": rot,
                                             "trans_err_deg": trans}}  # fmt: skip
@@ -18,25 +18,27 @@ def _summary(folder: Path, psnr: float, rot: float, trans: float) -> dict:
     return summary
 
 
-def test_ground_truth_pose_section_compares_both_runs(tmp_path):
+def test_posed_section_compares_both_runs(tmp_path):
     report = _report_module()
     initial, trained = _summary(tmp_path / "a", 16.0, 8.0, 70.0), _summary(tmp_path / "b", 17.0, 8.0, 15.0)
-    _summary(tmp_path / "gt0", 15.0, 0.0, 0.0)
-    _summary(tmp_path / "gt1", 21.5, 0.0, 0.0)
-    lines = report.ground_truth_pose_section(initial, trained, tmp_path / "gt0", tmp_path / "gt1")
+    _summary(tmp_path / "posed0", 15.0, None, None)  # no pose predicted, none scored
+    _summary(tmp_path / "posed1", 21.5, None, None)
+    lines = report.posed_section(initial, trained, tmp_path / "posed0", tmp_path / "posed1")
     text = "\n".join(lines)
-    assert "| predicted poses (the method) | 16.00 | 17.00 | +1.00 | 8.00 | 15.0 |" in text
-    assert "| ground-truth poses (diagnostic) | 15.00 | 21.50 | +6.50 | 0.00 | 0.0 |" in text
+    assert "| predicted cameras (the method) | 16.00 | 17.00 | +1.00 | 8.00 | 15.0 |" in text
+    assert "| the data set's cameras (`model.cameras: dataset`) | 15.00 | 21.50 | +6.50 | n/a | n/a |" in text
     assert "the pose head is what limits this run" in text
 
 
-def test_ground_truth_pose_section_is_empty_or_says_what_is_missing(tmp_path):
+def test_posed_section_is_empty_or_says_what_is_missing(tmp_path):
     report = _report_module()
     initial, trained = _summary(tmp_path / "a", 16.0, 8.0, 70.0), _summary(tmp_path / "b", 19.0, 2.0, 5.0)
-    assert report.ground_truth_pose_section(initial, trained, None, None) == []
-    missing = report.ground_truth_pose_section(initial, trained, tmp_path / "x", tmp_path / "y")
+    assert report.posed_section(initial, trained, None, None) == []
+    missing = report.posed_section(initial, trained, tmp_path / "x", tmp_path / "y")
     assert "did not finish" in missing[0]
-    _summary(tmp_path / "gt0", 15.0, 0.0, 0.0)
-    _summary(tmp_path / "gt1", 17.5, 0.0, 0.0)  # a gain no larger than the method's: no verdict on the poses
-    lines = report.ground_truth_pose_section(initial, trained, tmp_path / "gt0", tmp_path / "gt1")
+    _summary(tmp_path / "posed0", 15.0, None, None)
+    _summary(
+        tmp_path / "posed1", 17.5, None, None
+    )  # a gain no larger than the method's: no verdict on the poses
+    lines = report.posed_section(initial, trained, tmp_path / "posed0", tmp_path / "posed1")
     assert not any("limits this run" in line for line in lines)

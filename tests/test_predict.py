@@ -26,7 +26,9 @@ IMAGE_SIZE = 28
 SH_DEGREE = 2
 
 
-def write_tiny_checkpoint(run_dir: Path, data_root: str = "unused", image_size: int = IMAGE_SIZE) -> Path:
+def write_tiny_checkpoint(
+    run_dir: Path, data_root: str = "unused", image_size: int = IMAGE_SIZE, cameras: str = "predicted"
+) -> Path:
     """A random-init tiny model saved by a real Lightning Trainer, plus the run's config.yaml (as `aesplat fit`
     lays them out: RUN/checkpoints/last.ckpt, RUN/config.yaml)."""
     from lightning.pytorch import Trainer
@@ -37,6 +39,7 @@ def write_tiny_checkpoint(run_dir: Path, data_root: str = "unused", image_size: 
         net=NetConfig(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0),
         loss=LossConfig(lpips_weight=0.0),
         eval=EvalConfig(metrics_lpips=False),
+        cameras=cameras,
     )
     trainer = Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
                       enable_model_summary=False, accelerator="cpu")  # fmt: skip
@@ -131,7 +134,7 @@ def test_interpolate_cameras_passes_through_every_camera():
 
 def test_load_checkpoint_restores_the_trained_weights(tiny_ckpt):
     loaded = load_checkpoint(tiny_ckpt)
-    assert loaded.sh_degree == SH_DEGREE and loaded.image_size == IMAGE_SIZE
+    assert loaded.sh_degree == SH_DEGREE and loaded.image_size == IMAGE_SIZE and loaded.cameras == "predicted"
     assert not loaded.model.training
     state = torch.load(tiny_ckpt, weights_only=True)["state_dict"]
     for name, value in loaded.model.state_dict().items():
@@ -214,3 +217,12 @@ def test_predict_rejects_bad_input(tiny_ckpt, tmp_path):
         main(["--ckpt", str(tiny_ckpt), "--out", out, str(good), str(good), str(good)])
     with pytest.raises(SystemExit, match="ply-sh-degree"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, "--ply-sh-degree", "4", str(good), str(good)])
+
+
+def test_predict_refuses_a_checkpoint_trained_with_the_data_sets_cameras(tmp_path):
+    ckpt = write_tiny_checkpoint(tmp_path / "posed", cameras="dataset")
+    assert load_checkpoint(ckpt).cameras == "dataset"
+    good = save_png(tmp_path / "good.png", np.zeros((28, 28, 3)))
+    with pytest.raises(SystemExit, match="trained with model.cameras=dataset"):
+        main(["--ckpt", str(ckpt), "--out", str(tmp_path / "out"), str(good), str(good)])
+    assert not (tmp_path / "out").exists()

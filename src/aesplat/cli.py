@@ -11,8 +11,8 @@ and the data, the parser holds four sections: ``checkpoint`` (ModelCheckpoint: b
 a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml,
 test/. ``--ckpt_path last`` resumes from the newest of
 checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts fresh when there is none).
-``validate`` and ``test`` with a checkpoint file take ``model.cameras`` from the checkpoint, so a posed
-checkpoint (``--model.cameras dataset``) evaluates as it was trained with the config it came from.
+With ``--ckpt_path FILE``, LightningCLI takes the whole ``model`` section from the checkpoint's hyper-parameters
+(``model.cameras`` included), so a checkpoint evaluates as it was trained, whatever the config file says.
 """
 
 from __future__ import annotations
@@ -82,8 +82,6 @@ def _lightning_cli():
             for key in ("checkpoint", "last_checkpoint"):
                 if cfg[key].dirpath is None:
                     cfg[key].dirpath = str(Path(run_dir) / "checkpoints")
-            if self.subcommand in ("validate", "test") and cfg.get("ckpt_path"):
-                _cameras_from_checkpoint(cfg)
 
         def instantiate_trainer(self, **kwargs):
             cfg = self.config_init[self.subcommand]
@@ -106,21 +104,6 @@ def _lightning_cli():
                 print(f"resuming from {found}" if found else "no checkpoint to resume from: starting fresh")
 
     return AESplatCLI, AESplatModule, DataModule
-
-
-def _cameras_from_checkpoint(cfg) -> None:
-    """Set ``model.cameras`` of a validate/test config to what its checkpoint file was trained with."""
-    import torch
-
-    from aesplat.model import checkpoint_cameras
-
-    path = Path(cfg.ckpt_path)
-    if not path.is_file():  # "best", "last", or a missing file: Lightning resolves or reports it
-        return
-    saved = checkpoint_cameras(torch.load(path, map_location="cpu", weights_only=True, mmap=True))
-    if cfg.model.cameras != saved:
-        print(f"model.cameras: {saved} (as {path} was trained; the config said {cfg.model.cameras})")
-        cfg.model.cameras = saved
 
 
 # Lightning warnings that are expected here and would only bury real ones: the module moves its own typed

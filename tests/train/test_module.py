@@ -201,6 +201,9 @@ def test_dataset_cameras_render_the_targets_with_the_data_sets_poses(smoke_shard
     vc, (h, w) = batch.context.num_views, batch.context.image_shape
     direct = render(out.gaussians, extrinsics[:, vc:], intrinsics[:, vc:], h, w, backend="torch")
     torch.testing.assert_close(rendered.color, direct.color, atol=1e-6, rtol=0)
+    rendered.color.mean().backward()  # DDP (no unused-parameter search) needs a gradient on every trainable one
+    assert all(p.grad is not None for p in module.parameters() if p.requires_grad)
+    module.zero_grad(set_to_none=True)
 
     head = module.model.camera_head
     calls = []

@@ -1,4 +1,4 @@
-"""scripts/pose_sensitivity.py: the yaw landscape with ground-truth poses, the downhill test at own poses."""
+"""scripts/pose_sensitivity.py: the yaw landscape at the data set's cameras, the downhill test at own poses."""
 
 import json
 
@@ -7,6 +7,7 @@ import torch
 from aesplat.geometry import quat_to_matrix
 
 from ..script_loader import load_script
+from ..test_predict import write_tiny_checkpoint
 from .test_module import make_data, smoke_config
 
 
@@ -23,14 +24,12 @@ def test_yaw_helpers_round_trip():
     torch.testing.assert_close(turned[:3, 1], pose[:3, 1])
 
 
-def test_measures_a_ground_truth_pose_checkpoint(smoke_shards, tmp_path):
+def test_measures_a_posed_checkpoint(smoke_shards, tmp_path):
     script = load_script("pose_sensitivity")
-    gt = load_script("ground_truth_cameras")
-    module = gt.GroundTruthCamerasModule(**smoke_config()["model"]).eval()
-    ckpt = tmp_path / "gt.ckpt"  # the keys carry the wrapper's prefix, as the diagnostic's checkpoints do
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, ckpt)
-    loaded = script.load_module(ckpt)
-    assert torch.equal(loaded.model.camera_head.rotation.weight, module.model.camera_head.head.rotation.weight)
+    # A checkpoint as `aesplat fit --model.cameras dataset` writes it.
+    ckpt = write_tiny_checkpoint(tmp_path / "run", cameras="dataset")
+    module = script.load_module(ckpt)
+    assert module.cameras == "dataset" and not module.training
 
     size = smoke_config()["data"]["image_size"]
     out = tmp_path / "sensitivity.json"
@@ -38,7 +37,7 @@ def test_measures_a_ground_truth_pose_checkpoint(smoke_shards, tmp_path):
                           "--scenes", "2", "--offsets", "-3", "0", "3", "--out", str(out)])  # fmt: skip
     assert json.loads(out.read_text())["landscape_psnr"] == result["landscape_psnr"]
 
-    # Offset 0 is exactly the render of the ground-truth-pose module itself.
+    # Offset 0 is exactly the render of the posed module itself.
     psnrs = []
     with torch.no_grad():
         for _, batch in zip(range(2), make_data(smoke_shards, num_workers=0).test_dataloader()):

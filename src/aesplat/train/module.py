@@ -4,8 +4,7 @@ A batch flows: context + target images -> model (masked attention: targets canno
 -> Gaussians and *predicted* cameras of all views -> render the target views with the predicted target
 cameras -> photometric loss against the real target images. Ground-truth poses are used only in metrics.
 With ``cameras="dataset"`` (posed training, not the method) the batch's own cameras replace the camera
-head's everywhere: the head is frozen and never runs, the model sees the context images only, and the
-targets are rendered with the data set's target cameras.
+head's everywhere; the head is frozen and never runs.
 
 Optimization is manual so that a step with a non-finite loss or gradient is visibly skipped (parameters and
 AdamW state untouched, counted, logged) while the trainer's step counter, the schedule and the curriculum
@@ -75,9 +74,8 @@ class AESplatModule(LightningModule):
         eval: EvalConfig | None = None,
         cameras: CameraSource = "predicted",
     ) -> None:
-        """Each config argument is a config dataclass (or its dict form, as stored in checkpoints); None =
-        defaults. ``cameras``: ``predicted`` (the method: the camera head's) or ``dataset`` (the batch's own
-        poses and intrinsics, relative to context view 0; the camera head is frozen and unused)."""
+        """Each config is a dataclass (or its dict form, as stored in checkpoints); None = defaults.
+        ``cameras``: ``predicted`` (the camera head's: the method) or ``dataset`` (each batch's own: posed)."""
         super().__init__()
         net, loss, optim, render, eval = (
             _as(NetConfig, net), _as(LossConfig, loss), _as(OptimConfig, optim),
@@ -279,12 +277,9 @@ class AESplatModule(LightningModule):
         }
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        saved = checkpoint_cameras(checkpoint)
-        if saved != self.cameras:
-            raise ValueError(
-                f"the checkpoint was trained with model.cameras={saved} but this run has "
-                f"model.cameras={self.cameras}; pass --model.cameras {saved}"
-            )
+        if (saved := checkpoint_cameras(checkpoint)) != self.cameras:
+            raise ValueError(f"the checkpoint was trained with model.cameras={saved}, this run has "
+                             f"{self.cameras}; pass --model.cameras {saved}")  # fmt: skip
         self.skipped_steps = int(checkpoint.get("skipped_steps", 0))
         rng = checkpoint.get("rng")
         trainer = self._trainer  # None when loaded outside a Trainer (load_from_checkpoint)
