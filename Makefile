@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test test-slow test-torch-floor test-gpu lint format demo bench clean
+.PHONY: venv test test-slow test-torch-floor test-gpu lint format demo bench curves clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -121,6 +121,15 @@ BENCH_OUT ?= outputs/bench
 
 bench: $(STAMP)
 	$(AESPLAT) bench --ckpt $(CKPT) --out $(BENCH_OUT)
+
+# `make curves [CURVES_ARGS=...]`: learning curves, pose-free against posed and each lever (issue 13), on the
+# demo's shards (made as `make demo` makes them if missing). Resumable: run it again after an interruption.
+CURVES_OUT ?= outputs/curves
+CURVES_ARGS ?= --steps 20000 --every 500 --runs pose-free posed context-views coarse-to-fine patch-7
+
+curves: $(STAMP)
+	$(PY) benchmarks/learning_curves.py --config $(DEMO_CONFIG) --data $(DEMO_DIR) --size $(DEMO_SIZE) \
+		--scene-args="$(DEMO_SCENE_ARGS)" --out $(CURVES_OUT) $(CURVES_ARGS)
 
 clean:
 	rm -rf $(VENV) $(FLOOR_VENV) outputs .pytest_cache .ruff_cache

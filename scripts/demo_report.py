@@ -35,7 +35,7 @@ from aesplat.bench import evaluation_scenes  # noqa: E402
 from aesplat.model import forward_batch  # noqa: E402
 from aesplat.predict import LoadedCheckpoint, colorize_depth, load_checkpoint, run_config  # noqa: E402
 from aesplat.render import render  # noqa: E402
-from aesplat.train.metrics import psnr  # noqa: E402
+from aesplat.train.metrics import context_copy_psnr, psnr  # noqa: E402
 
 CAMERAS = {"predicted": "*predicted* target cameras", "dataset": "data set's target cameras"}  # model.cameras
 METRIC_ROWS = [  # key in summary.json, label, format, True when higher is better
@@ -236,23 +236,6 @@ def bucket_table(initial: dict, trained: dict) -> list[str]:
     return lines
 
 
-def context_baselines(pairs: list[tuple[torch.Tensor, torch.Tensor]]) -> dict[str, float]:
-    """PSNR of renders that need no model, averaged like `aesplat test` (over each scene's targets, then over
-    scenes): the mean of the context views, and the better of the context views for each scene.
-
-    pairs: (context images [1, Vc, 3, H, W], target images [1, Vt, 3, H, W]) per scene.
-    """
-    mean_view, best_view = [], []
-    for context, target in pairs:
-        tgt = target[0]
-        mean_view.append(psnr(context[0].mean(0, keepdim=True).expand_as(tgt), tgt).mean().item())
-        best_view.append(max(psnr(view[None].expand_as(tgt), tgt).mean().item() for view in context[0]))
-    return {
-        "mean of the context views": sum(mean_view) / len(mean_view),
-        "the better context view of each scene": sum(best_view) / len(best_view),
-    }
-
-
 def posed_section(initial: dict, trained: dict, posed_initial: Path | None, posed_trained: Path | None):
     """The diagnostic run with the data set's cameras next to the method's run (empty when it did not run)."""
     if posed_initial is None or posed_trained is None:
@@ -328,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     have_curve = loss_curve(metrics, initial["metrics"]["psnr"], trained["metrics"]["psnr"],
                             args.out / "loss_curve.png")  # fmt: skip
 
-    baselines = context_baselines([(scene.context.images, scene.target.images) for scene in all_scenes])
+    baselines = context_copy_psnr([(scene.context.images, scene.target.images) for scene in all_scenes])
 
     gain = trained["metrics"]["psnr"] - initial["metrics"]["psnr"]
     train_rows = [r for r in metrics if "train/loss" in r]

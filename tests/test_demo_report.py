@@ -1,10 +1,7 @@
 """scripts/demo_report.py: the posed diagnostic section (`model.cameras: dataset`) of the demo report."""
 
 import json
-import math
 from pathlib import Path
-
-import torch
 
 from .script_loader import load_script
 
@@ -45,18 +42,3 @@ def test_posed_section_is_empty_or_says_what_is_missing(tmp_path):
     )  # a gain no larger than the method's: no verdict on the poses
     lines = report.posed_section(initial, trained, tmp_path / "posed0", tmp_path / "posed1")
     assert not any("limits this run" in line for line in lines)
-
-
-def test_context_baselines_average_like_aesplat_test():
-    report = _report_module()
-    target = torch.full((1, 2, 3, 4, 4), 0.5)
-    same = torch.full((1, 1, 3, 4, 4), 0.5)
-    off = torch.full((1, 1, 3, 4, 4), 0.6)  # MSE 0.01 -> 20 dB
-    scenes = [
-        (torch.cat([off, off], 1), target),  # both views 20 dB, their mean too
-        (torch.cat([same + 0.2, off], 1), target),  # views 0.7 (14 dB) and 0.6 (20 dB), mean 0.65 (16.48 dB)
-    ]
-    values = report.context_baselines(scenes)
-    assert abs(values["the better context view of each scene"] - 20.0) < 1e-4
-    mean = (20.0 + 10 * math.log10(1 / 0.15**2)) / 2
-    assert abs(values["mean of the context views"] - mean) < 1e-4

@@ -185,7 +185,7 @@ def test_build_model_options_reach_the_modules():
 @pytest.mark.parametrize(
     ("ctx_shape", "tgt_shape", "match"),
     [
-        ((1, 2, 3, 30, 28), None, "multiples of 14"),
+        ((1, 2, 3, 30, 28), None, "multiples of the patch size 14"),
         ((1, 1, 3, 28, 28), None, "at least 2 context views"),
         ((1, 2, 28, 28), None, r"\[B, Vc, 3, H, W\]"),
         ((1, 2, 3, 28, 28), (1, 1, 3, 42, 42), "target_images"),
@@ -320,3 +320,17 @@ def test_bf16_head_precision_runs_dpt_trunks_in_bf16_and_the_rest_in_fp32(model)
     torch.testing.assert_close(got.gaussians.means, want.gaussians.means, rtol=1e-2, atol=1e-3)
     with pytest.raises(ValueError, match="head precision"):
         build_model("tiny", head_precision="fp16")
+
+
+def test_a_smaller_patch_gives_more_tokens_per_view():
+    torch.manual_seed(0)
+    m = build_model("tiny", sh_degree=1, patch_size=7)
+    assert m.encoder.patch_embed.proj.kernel_size == (7, 7)
+    images = torch.rand(1, 2, 3, 42, 42)
+    assert m.encoder(images[:, 0]).shape[1] == 36  # 6x6 tokens where patch 14 gives 3x3
+    assert build_model("tiny", sh_degree=1).encoder(images[:, 0]).shape[1] == 9
+    with torch.no_grad():
+        out = m(images, torch.rand(1, 1, 3, 42, 42))
+    assert out.depth.shape == (1, 2, 42, 42) and out.gaussians.means.shape == (1, 2 * 42 * 42, 3)
+    with pytest.raises(ValueError, match="multiples of the patch size 7"):
+        m(torch.rand(1, 2, 3, 45, 42))

@@ -8,6 +8,7 @@ from aesplat.train.loss import (
     LossConfig,
     LpipsWeightsMissing,
     PhotometricLoss,
+    gaussian_blur,
     load_lpips_network,
     maybe_lpips,
     vgg16_weights_path,
@@ -82,3 +83,49 @@ def test_mse_only_loss():
     assert terms["total"].item() == pytest.approx(0.25)
     with pytest.raises(ValueError, match="LPIPS"):
         PhotometricLoss(LossConfig(lpips_weight=0.05), None)
+
+
+def test_gaussian_blur_keeps_constants_spreads_a_point_by_sigma_and_is_off_at_zero():
+    images = torch.rand(2, 3, 21, 21)
+    assert gaussian_blur(images, 0.0) is images
+    constant = torch.full((1, 3, 21, 21), 0.3)
+    assert torch.allclose(gaussian_blur(constant, 2.0), constant, atol=1e-6)
+    point = torch.zeros(1, 1, 41, 41)
+    point[0, 0, 20, 20] = 1.0
+    blurred = gaussian_blur(point, 2.0)[0, 0]
+    assert blurred.sum().item() == pytest.approx(1.0, abs=1e-5)
+    x = torch.arange(41.0) - 20
+    variance = (blurred.sum(0) * x**2).sum().item()  # spread along one axis
+    assert variance == pytest.approx(4.0, rel=0.05)
+
+
+def test_blur_schedule_shrinks_linearly_to_none():
+    cfg = LossConfig(lpips_weight=0.0, blur_sigma=4.0, blur_steps=100)
+    assert [cfg.blur_at(s) for s in (0, 50, 100, 500)] == [4.0, 2.0, 0.0, 0.0]
+    assert LossConfig().blur_at(0) == 0.0
+    with pytest.raises(ValueError, match="blur_steps"):
+        LossConfig(blur_sigma=1.0)
+    with pytest.raises(ValueError, match=">= 0"):
+        LossConfig(context_weight=-1.0)
+
+
+def test_coarse_to_fine_loss_compares_blurred_images_early_only():
+    loss = PhotometricLoss(LossConfig(lpips_weight=0.0, blur_sigma=3.0, blur_steps=10), None)
+    target = torch.zeros(1, 1, 3, 24, 24)
+    pred = target.clone()
+    pred[..., ::2, :] = 1.0  # stripes: mean 0.5, gone under a wide blur
+    early, late = loss(pred, target, step=0)["mse"].item(), loss(pred, target, step=10)["mse"].item()
+    assert late == pytest.approx(0.5)
+    assert early == pytest.approx(0.25, rel=0.05)  # what remains is the stripes' mean 0.5, squared
+
+
+def test_context_views_add_their_weighted_loss():
+    loss = PhotometricLoss(LossConfig(lpips_weight=0.0, context_weight=0.5), None)
+    assert loss.renders_context and not PhotometricLoss(LossConfig(lpips_weight=0.0), None).renders_context
+    pred, target = torch.zeros(1, 1, 3, 4, 4), torch.full((1, 1, 3, 4, 4), 0.5)  # MSE 0.25
+    context_pred, context = torch.zeros(1, 2, 3, 4, 4), torch.full((1, 2, 3, 4, 4), 0.2)  # MSE 0.04
+    terms = loss(pred, target, 0, context_pred, context)
+    assert terms["context_mse"].item() == pytest.approx(0.04)
+    assert terms["total"].item() == pytest.approx(0.25 + 0.5 * 0.04)
+    with pytest.raises(ValueError, match="context"):
+        loss(pred, target)

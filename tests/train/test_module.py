@@ -241,3 +241,25 @@ def test_a_checkpoint_of_the_other_camera_source_is_refused():
     with pytest.raises(ValueError, match="trained with model.cameras=dataset.*--model.cameras dataset"):
         module.on_load_checkpoint({"hyper_parameters": {"cameras": "dataset"}})
     module.on_load_checkpoint({"hyper_parameters": {}})  # older checkpoints were all predicted
+
+
+def test_context_weight_renders_the_context_views_and_trains_the_pose_through_them(smoke_shards):
+    """model.loss.context_weight > 0: each context view is rendered from all context Gaussians at its own
+    predicted camera, and that loss alone reaches the camera head (the relative pose between the context
+    views gets a photometric signal of its own)."""
+    L.seed_everything(0)
+    module, data = make_module(loss={"context_weight": 1.0}), make_data(smoke_shards)
+    batch = next(iter(data.train_dataloader())).float_images()
+    out, rendered = module(batch, with_context=True)
+    vc, vt = batch.context.num_views, batch.target.num_views
+    assert rendered.color.shape[1] == vc + vt
+    _, targets_only = module(batch)
+    torch.testing.assert_close(rendered.color[:, vc:], targets_only.color, atol=1e-6, rtol=0)
+    (h, w) = batch.context.image_shape
+    direct = render(out.gaussians, out.extrinsics[:, :vc], out.intrinsics[:, :vc], h, w, backend="torch")
+    torch.testing.assert_close(rendered.color[:, :vc], direct.color, atol=1e-6, rtol=0)
+    terms = module.loss_fn(rendered.color[:, vc:], batch.target.images, 0, rendered.color[:, :vc],
+                           batch.context.images)  # fmt: skip
+    terms["context_mse"].backward()
+    grads = [p.grad for p in module.model.camera_head.parameters() if p.grad is not None]
+    assert grads and sum(g.abs().sum() for g in grads) > 0

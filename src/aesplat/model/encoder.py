@@ -31,6 +31,13 @@ class EncoderConfig:
     mlp_ratio: float = 4.0
     num_registers: int = 0  # DINOv2 "reg4" models have 4
     pos_grid: int = 37  # learned position grid (DINOv2: 518 / 14); interpolated to the input grid
+    # Pixels per patch side. DINOv2 (and any pretrained checkpoint) uses 14; a randomly initialised small model
+    # may use a smaller patch for more tokens per image (42 px: 3x3 tokens at 14, 6x6 at 7).
+    patch_size: int = PATCH_SIZE
+
+    def __post_init__(self) -> None:
+        if self.patch_size < 1:
+            raise ValueError(f"encoder patch_size must be >= 1, got {self.patch_size}")
 
 
 def resize_position_grid(patch_pos: Tensor, size: tuple[int, int]) -> Tensor:
@@ -52,9 +59,9 @@ def resize_position_grid(patch_pos: Tensor, size: tuple[int, int]) -> Tensor:
 
 
 class PatchEncoder(nn.Module):
-    """DINOv2-style ViT/14 with ImageNet normalisation inside.
+    """DINOv2-style ViT/14 (patch p = ``cfg.patch_size``, 14 unless set) with ImageNet normalisation inside.
 
-    images [B, 3, H, W] in [0, 1] (H, W multiples of 14) -> patch tokens [B, (H/14)·(W/14), dim] after the
+    images [B, 3, H, W] in [0, 1] (H, W multiples of p) -> patch tokens [B, (H/p)·(W/p), dim] after the
     final LayerNorm (class and register tokens are dropped).
     """
 
@@ -63,7 +70,7 @@ class PatchEncoder(nn.Module):
         self.cfg = cfg
         d = cfg.dim
         self.patch_embed = nn.Module()
-        self.patch_embed.proj = nn.Conv2d(3, d, PATCH_SIZE, PATCH_SIZE)
+        self.patch_embed.proj = nn.Conv2d(3, d, cfg.patch_size, cfg.patch_size)
         self.cls_token = nn.Parameter(torch.zeros(1, 1, d))
         self.reg_token = nn.Parameter(torch.zeros(1, cfg.num_registers, d)) if cfg.num_registers else None
         self.pos_embed = nn.Parameter(torch.zeros(1, 1 + cfg.pos_grid**2, d))

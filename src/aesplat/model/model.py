@@ -16,7 +16,7 @@ from aesplat.types import BatchedExample, Gaussians
 from .appearance import APPEARANCE_MODES, DecoupledAppearance
 from .camera_head import CameraHead
 from .dpt import DepthHead
-from .encoder import PATCH_SIZE, EncoderConfig, PatchEncoder
+from .encoder import EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead
 from .transformer import GeometryTransformer, TransformerConfig
 from .weights import WeightsReport, load_pretrained_weights
@@ -91,6 +91,7 @@ _NESTED = {
     "num_register_tokens": ("transformer", "num_register_tokens"),
     "qk_norm": ("transformer", "qk_norm"),
     "encoder_registers": ("encoder", "num_registers"),
+    "patch_size": ("encoder", "patch_size"),
 }
 
 
@@ -135,9 +136,10 @@ class AESplatModel(nn.Module):
     """Pose-free feed-forward Gaussian splatting with decoupled appearance (see the README section "Model").
 
     forward(context_images [B, Vc, 3, H, W], target_images [B, Vt, 3, H, W] | None) -> ModelOutput, images
-    float in [0, 1], H and W multiples of 14, Vc >= 2. The encoder and the geometry transformer follow any
-    surrounding autocast; the heads, geometry and appearance run in float32 (with ``head_precision="bf16"`` the
-    DPT trunks' convolutions run in bf16, their outputs and all that follows in float32).
+    float in [0, 1], H and W multiples of the patch size (14 unless ``patch_size`` is set), Vc >= 2. The
+    encoder and the geometry transformer follow any surrounding autocast; the heads, geometry and appearance
+    run in float32 (with ``head_precision="bf16"`` the DPT trunks' convolutions run in bf16, their outputs and
+    all that follows in float32).
 
     forward(context_images, extrinsics=E, intrinsics=K) uses the cameras E [B, V, 4, 4] (camera-to-world in
     context view 0's frame) and K [B, V, 3, 3] (normalised) instead of the camera head's, which does not run;
@@ -225,8 +227,9 @@ class AESplatModel(nn.Module):
         b, vc, _, h, w = context.shape
         if vc < 2:
             raise ValueError(f"the model needs at least 2 context views, got {vc}")
-        if h % PATCH_SIZE or w % PATCH_SIZE:
-            raise ValueError(f"image height and width must be multiples of {PATCH_SIZE}, got {h}x{w}")
+        p = self.cfg.encoder.patch_size
+        if h % p or w % p:
+            raise ValueError(f"image height and width must be multiples of the patch size {p}, got {h}x{w}")
         if target is not None:
             if target.ndim != 5 or target.shape[0] != b or target.shape[2:] != context.shape[2:]:
                 raise ValueError(
@@ -248,7 +251,7 @@ class AESplatModel(nn.Module):
         b, vc, _, h, w = context_images.shape
         images = context_images if target_images is None else torch.cat([context_images, target_images], dim=1)
         v = images.shape[1]
-        grid = (h // PATCH_SIZE, w // PATCH_SIZE)
+        grid = (h // self.cfg.encoder.patch_size, w // self.cfg.encoder.patch_size)
 
         tokens = self.encoder(images.flatten(0, 1)).unflatten(0, (b, v))  # [B, V, P, D]
         layers = self.transformer(tokens, grid, num_context=vc)  # 4 x [B, V, T, 2·dim]
@@ -316,7 +319,8 @@ def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4
 
     appearance: one of full, no_gvsre, no_wcm, i2dc_only, baseline, baseline_i2dc (the paper's ablation rows).
     kwargs: any :class:`ModelConfig` field (``near``, ``far``, ``weights``, ``num_context_views``, ...) and
-    ``rope``, ``num_register_tokens``, ``qk_norm`` (geometry transformer), ``encoder_registers``.
+    ``rope``, ``num_register_tokens``, ``qk_norm`` (geometry transformer), ``encoder_registers``,
+    ``patch_size`` (encoder; 14 is DINOv2's and the only one pretrained weights fit).
     """
     if size not in SIZES:
         raise ValueError(f"unknown model size {size!r}; choose one of {', '.join(SIZES)}")

@@ -1,5 +1,11 @@
 """Photometric loss λ_mse·MSE + λ_lpips·LPIPS(VGG) on target views, and the frozen LPIPS network.
 
+Two options widen what the loss tells the pose head (issue 13; both off by default, the paper's loss):
+``context_weight`` adds the same photometric loss on the context views, each rendered from the Gaussians of
+all context views at its own camera, so the relative pose between the context views gets a signal of its
+own; ``blur_sigma`` / ``blur_steps`` compare blurred images early in training (coarse to fine), the blur
+shrinking linearly to none, which widens the basin of the pose gradient.
+
 The LPIPS network is torchmetrics' implementation (its linear layers ship inside torchmetrics). Its VGG16
 backbone needs torchvision's ImageNet weights, which are read from the local torch hub cache and never
 downloaded. The network is held outside the module tree on purpose: it is never trained, never moved by an
@@ -9,6 +15,7 @@ optimizer and never written into a checkpoint.
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +32,24 @@ class LossConfig:
 
     mse_weight: float = 1.0
     lpips_weight: float = 0.05
+    context_weight: float = 0.0  # > 0: also render the context views and add their loss with this weight
+    blur_sigma: float = 0.0  # coarse to fine: Gaussian blur (pixels) of render and image at step 0 ...
+    blur_steps: int = 0  # ... shrinking linearly to no blur at this step
+
+    def __post_init__(self) -> None:
+        if self.context_weight < 0 or self.blur_sigma < 0 or self.blur_steps < 0:
+            raise ValueError(
+                "model.loss.context_weight, blur_sigma and blur_steps must be >= 0, got "
+                f"{self.context_weight}, {self.blur_sigma}, {self.blur_steps}"
+            )
+        if self.blur_sigma > 0 and self.blur_steps == 0:
+            raise ValueError("model.loss.blur_sigma > 0 needs blur_steps > 0: the step where the blur ends")
+
+    def blur_at(self, step: int) -> float:
+        """Blur sigma (pixels) of the coarse-to-fine schedule at a training step; 0 from ``blur_steps`` on."""
+        if self.blur_steps <= 0:
+            return 0.0
+        return self.blur_sigma * max(0.0, 1.0 - step / self.blur_steps)
 
 
 class LpipsWeightsMissing(FileNotFoundError):
@@ -112,10 +137,29 @@ def maybe_lpips(required: bool) -> tuple[FrozenLpips | None, str | None]:
         return None, f"VGG16 weights not found at {vgg16_weights_path()}"
 
 
-class PhotometricLoss(nn.Module):
-    """λ_mse·MSE + λ_lpips·LPIPS between rendered and real target views, computed in fp32.
+def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
+    """Separable Gaussian blur with reflected borders: images [N, C, H, W] -> [N, C, H, W]; sigma in pixels
+    (the kernel is cut at 3 sigma and at the image size); sigma <= 0 returns the images unchanged."""
+    if sigma <= 0:
+        return images
+    n, c, h, w = images.shape
+    radius = max(1, min(int(math.ceil(3 * sigma)), h - 1, w - 1))
+    x = torch.arange(-radius, radius + 1, device=images.device, dtype=images.dtype)
+    kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+    kernel = kernel / kernel.sum()
+    flat = images.reshape(n * c, 1, h, w)
+    flat = F.conv2d(F.pad(flat, (radius, radius, 0, 0), mode="reflect"), kernel.view(1, 1, 1, -1))
+    flat = F.conv2d(F.pad(flat, (0, 0, radius, radius), mode="reflect"), kernel.view(1, 1, -1, 1))
+    return flat.reshape(n, c, h, w)
 
-    forward(pred, target) with [B, V, 3, H, W] in [0, 1] -> dict of scalar tensors: total, mse, lpips (if used).
+
+class PhotometricLoss(nn.Module):
+    """λ_mse·MSE + λ_lpips·LPIPS between rendered and real target views, computed in fp32; optionally plus
+    ``context_weight`` times the same loss on the context views, and blurred early on (see the module doc).
+
+    forward(pred, target, step, context_pred, context) with pred, target [B, Vt, 3, H, W] and context_pred,
+    context [B, Vc, 3, H, W] in [0, 1] (the context pair when ``renders_context``) -> dict of scalar tensors:
+    total, mse, lpips (if used), context_mse (and context_lpips) with the context views.
     """
 
     def __init__(self, cfg: LossConfig, lpips: FrozenLpips | None) -> None:
@@ -125,13 +169,37 @@ class PhotometricLoss(nn.Module):
         self.cfg = cfg
         self.lpips = lpips if cfg.lpips_weight > 0 else None
 
-    def forward(self, pred: Tensor, target: Tensor) -> dict[str, Tensor]:
+    @property
+    def renders_context(self) -> bool:
+        """Whether the loss wants the context views rendered too."""
+        return self.cfg.context_weight > 0
+
+    def _photometric(self, pred: Tensor, target: Tensor, sigma: float, prefix: str) -> dict[str, Tensor]:
+        """Weighted MSE (+ LPIPS) of [B, V, 3, H, W] images after a blur of ``sigma`` px; "total" unprefixed."""
+        pred, target = pred.float().flatten(0, 1), target.float().flatten(0, 1)
+        pred, target = gaussian_blur(pred, sigma), gaussian_blur(target, sigma)
+        terms = {f"{prefix}mse": F.mse_loss(pred, target)}
+        total = self.cfg.mse_weight * terms[f"{prefix}mse"]
+        if self.lpips is not None:
+            terms[f"{prefix}lpips"] = self.lpips(pred, target).mean()
+            total = total + self.cfg.lpips_weight * terms[f"{prefix}lpips"]
+        return {**terms, "total": total}
+
+    def forward(
+        self,
+        pred: Tensor,
+        target: Tensor,
+        step: int = 0,
+        context_pred: Tensor | None = None,
+        context: Tensor | None = None,
+    ) -> dict[str, Tensor]:
+        if self.renders_context and (context_pred is None or context is None):
+            raise ValueError("model.loss.context_weight > 0: pass the rendered and the real context views")
+        sigma = self.cfg.blur_at(step)
         with torch.autocast(pred.device.type, enabled=False):
-            pred, target = pred.float(), target.float()
-            terms = {"mse": F.mse_loss(pred, target)}
-            total = self.cfg.mse_weight * terms["mse"]
-            if self.lpips is not None:
-                terms["lpips"] = self.lpips(pred.flatten(0, 1), target.flatten(0, 1)).mean()
-                total = total + self.cfg.lpips_weight * terms["lpips"]
-        terms["total"] = total
+            terms = self._photometric(pred, target, sigma, "")
+            if self.renders_context:
+                extra = self._photometric(context_pred, context, sigma, "context_")
+                total = terms["total"] + self.cfg.context_weight * extra.pop("total")
+                terms = {**terms, **extra, "total": total}
         return terms

@@ -112,14 +112,15 @@ class AESplatModule(LightningModule):
         return batch.float_images()
 
     # ----------------------------------------------------------------------------------------- forward
-    def forward(self, batch: BatchedExample) -> tuple[ModelOutput, RenderOutput]:
-        """Model outputs and the renders of the target views with the target cameras (``self.cameras``)."""
-        vc = batch.context.num_views
+    def forward(self, batch: BatchedExample, with_context: bool = False) -> tuple[ModelOutput, RenderOutput]:
+        """Model outputs and the renders of the target views with the target cameras (``self.cameras``);
+        ``with_context``: the context views first, each rendered at its own camera (one render call)."""
+        first = 0 if with_context else batch.context.num_views
         height, width = batch.context.image_shape
         out = forward_batch(self.model, batch, self.cameras)
         background = torch.tensor(self.render_cfg.background, device=self.device)
         rendered = render(
-            out.gaussians, out.extrinsics[:, vc:], out.intrinsics[:, vc:], height, width,
+            out.gaussians, out.extrinsics[:, first:], out.intrinsics[:, first:], height, width,
             background=background, backend=self.render_cfg.backend, **self.render_cfg.options,
         )  # fmt: skip
         return out, rendered
@@ -145,8 +146,14 @@ class AESplatModule(LightningModule):
         for name, lr in current_learning_rates(optimizer.optimizer).items():
             self.log(f"lr/{name}", lr, on_step=True, on_epoch=False)
 
-        _, rendered = self(batch)
-        terms = self.loss_fn(rendered.color, batch.target.images)
+        with_context = self.loss_fn.renders_context
+        _, rendered = self(batch, with_context=with_context)
+        context_pred = None
+        if with_context:
+            vc = batch.context.num_views
+            context_pred, rendered = rendered.color[:, :vc], rendered.apply(lambda t: t[:, vc:])
+        terms = self.loss_fn(rendered.color, batch.target.images, self.global_step, context_pred,
+                             batch.context.images)  # fmt: skip
         optimizer.zero_grad(set_to_none=True)
         # Always backward, even on a NaN loss: under DDP every rank must join the gradient all-reduce.
         self.manual_backward(terms["total"])
@@ -166,8 +173,9 @@ class AESplatModule(LightningModule):
         b = batch.batch_size
         self.log("train/loss", terms["total"], prog_bar=True, batch_size=b)
         self.log("train/mse", terms["mse"], batch_size=b)
-        if "lpips" in terms:
-            self.log("train/lpips", terms["lpips"], batch_size=b)
+        for key in ("lpips", "context_mse", "context_lpips"):
+            if key in terms:
+                self.log(f"train/{key}", terms[key], batch_size=b)
         with torch.no_grad():
             train_psnr = psnr(rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1)).mean()
         self.log("train/psnr", train_psnr, prog_bar=True, batch_size=b)

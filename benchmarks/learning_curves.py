@@ -1,0 +1,228 @@
+#!/usr/bin/env python
+"""Learning curves: what accuracy costs in training time, pose-free against posed, and each lever's curve.
+
+    python benchmarks/learning_curves.py [--config conf/demo.yaml] [--data outputs/demo] [--size 42]
+        [--steps 20000] [--every 500] [--runs pose-free posed ...] [--define NAME='--model.x 1 ...']
+        [--out outputs/curves] [-- extra `aesplat fit` overrides for every run]
+
+Trains each named run with `aesplat fit` (in this process, one after the other, same config and seed) and
+records, with the ``aesplat.train.curves.LearningCurve`` callback, held-out test PSNR, SSIM, rotation and
+translation-direction errors and the copy-the-context yardsticks at step 0, every ``--every`` steps and at
+the end, against steps and training seconds (evaluation excluded). Writes OUT/<run>/curve.csv per run,
+OUT/curves.png (PSNR and rotation error against steps and against seconds, one line per run, the yardsticks
+as horizontal lines) and OUT/CURVES.md (a table of first and last points). Run it again to resume: finished
+runs are skipped, an interrupted one continues from its last checkpoint (OUT/<run>/checkpoints/last.ckpt,
+written at every point) without evaluating its finished points again.
+
+The data: the shards under DATA/shards; when they are missing they are made as `make demo` makes them
+(data_prep/synthetic.py into DATA/src with --scene-args, then data_prep/to_shards.py at --size).
+
+Runs (``--runs``; the levers are the options of issue 13, each off by default):
+
+    pose-free        the method: ``--model.cameras predicted``
+    posed            the same model with the data set's cameras (``--model.cameras dataset``)
+    context-views    pose-free + the context views rendered too, loss weight 1 (``model.loss.context_weight``)
+    coarse-to-fine   pose-free + a blur of 3 px shrinking to none over the first half of the steps
+                     (``model.loss.blur_sigma``, ``model.loss.blur_steps``)
+    patch-7          pose-free with 7-pixel patches (``model.net.options.patch_size``): 6x6 tokens at 42 px
+    warm-start       see README: not a run of this command (a pre-training stage is a separate fit)
+
+``--define NAME='ARGS'`` adds a run of your own (ARGS: `aesplat fit` overrides).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from aesplat.train.curves import read_curve  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def lever_args(steps: int) -> dict[str, list[str]]:
+    """`aesplat fit` overrides of each named run for a curve of ``steps`` steps."""
+    pose_free = ["--model.cameras", "predicted"]
+    return {
+        "pose-free": pose_free,
+        "posed": ["--model.cameras", "dataset"],
+        "context-views": [*pose_free, "--model.loss.context_weight", "1.0"],
+        "coarse-to-fine": [
+            *pose_free,
+            "--model.loss.blur_sigma",
+            "3.0",
+            "--model.loss.blur_steps",
+            str(max(1, steps // 2)),
+        ],  # fmt: skip
+        "patch-7": [*pose_free, "--model.net.options", '{"patch_size": 7}'],
+    }
+
+
+def ensure_shards(data: Path, size: int, scene_args: str) -> Path:
+    """DATA/shards, made like `make demo` makes them when its manifest is missing."""
+    shards = data / "shards"
+    if (shards / "manifest.json").is_file():
+        return shards
+    python = sys.executable
+    subprocess.run([python, str(ROOT / "data_prep/synthetic.py"), "--out", str(data / "src"),
+                    *shlex.split(scene_args)], check=True)  # fmt: skip
+    subprocess.run([python, str(ROOT / "data_prep/to_shards.py"), "--src", str(data / "src"), "--out",
+                    str(shards), "--size", str(size)], check=True)  # fmt: skip
+    return shards
+
+
+def fit_args(config: str, shards: Path, size: int, run_dir: Path, steps: int, every: int, extra: list[str]):
+    """The `aesplat fit` command line of one curve: no validation, no logger, last.ckpt at every point."""
+    return [
+        "fit", "-c", config, "--data.root", str(shards), "--data.image_size", str(size),
+        "--trainer.default_root_dir", str(run_dir), "--trainer.max_steps", str(steps),
+        "--trainer.limit_val_batches", "0", "--trainer.logger", "false",
+        "--trainer.enable_progress_bar", "false",
+        "--checkpoint.save_top_k", "0", "--last_checkpoint.every_n_train_steps", str(every),
+        "--trainer.callbacks+=aesplat.train.curves.LearningCurve",
+        "--trainer.callbacks.csv_path", str(run_dir / "curve.csv"),
+        "--trainer.callbacks.every_n_steps", str(every),
+        *extra, "--ckpt_path", "last",
+    ]  # fmt: skip
+
+
+def finished(csv_path: Path, steps: int) -> bool:
+    rows = read_curve(csv_path)
+    return bool(rows) and rows[-1]["step"] >= steps
+
+
+def plot_curves(curves: dict[str, list[dict[str, float]]], path: Path, title: str = "") -> None:
+    """PSNR and rotation error against steps and against training seconds; yardsticks as horizontal lines."""
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8.5), squeeze=False)
+    for i, (name, rows) in enumerate(curves.items()):
+        if not rows:
+            continue
+        color = f"C{i % 10}"
+        for col, x_key in enumerate(("step", "train_seconds")):
+            x = [r[x_key] for r in rows]
+            axes[0, col].plot(x, [r["psnr"] for r in rows], "o-", ms=3, color=color, label=name)
+            rot = [r["rot_err_deg"] for r in rows]
+            if any(math.isfinite(v) for v in rot):
+                axes[1, col].plot(x, rot, "o-", ms=3, color=color, label=name)
+    rows = next((r for r in curves.values() if r), [])
+    if rows:
+        for col in range(2):
+            ax = axes[0, col]
+            ax.axhline(rows[0]["copy_mean_psnr"], color="k", ls="--", lw=1, label="copy: mean of context")
+            ax.axhline(rows[0]["copy_best_psnr"], color="k", ls=":", lw=1, label="copy: better context")
+    labels = {"step": "training step", "train_seconds": "training seconds (evaluation excluded)"}
+    for col, x_key in enumerate(("step", "train_seconds")):
+        axes[0, col].set_ylabel("test PSNR (dB)")
+        axes[1, col].set_ylabel("test rotation error (°)")
+        for row in range(2):
+            axes[row, col].set_xlabel(labels[x_key])
+            axes[row, col].grid(True, alpha=0.3)
+            if axes[row, col].lines:
+                axes[row, col].legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def summary_table(curves: dict[str, list[dict[str, float]]]) -> list[str]:
+    """Markdown: per run, first and last points (PSNR, rotation and translation errors) and its seconds."""
+
+    def f(v: float, pattern: str) -> str:
+        return pattern.format(v) if math.isfinite(v) else "n/a"
+
+    lines = [
+        "| run | steps | training s | s/step | PSNR start → end (dB) | rotation error start → end (°) "
+        "| translation error start → end (°) |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for name, rows in curves.items():
+        if not rows:
+            continue
+        a, b = rows[0], rows[-1]
+        per_step = b["train_seconds"] / b["step"] if b["step"] else math.nan
+        lines.append(
+            f"| {name} | {int(b['step'])} | {b['train_seconds']:.0f} | {f(per_step, '{:.2f}')} | "
+            f"{a['psnr']:.2f} → {b['psnr']:.2f} | "
+            f"{f(a['rot_err_deg'], '{:.2f}')} → {f(b['rot_err_deg'], '{:.2f}')} "
+            f"| {f(a['trans_err_deg'], '{:.1f}')} → {f(b['trans_err_deg'], '{:.1f}')} |"
+        )
+    rows = next((r for r in curves.values() if r), [])
+    if rows:
+        first = rows[0]
+        lines += ["", f"Copy-the-context yardsticks on the same {int(first['num_scenes'])} test scenes: "
+                  f"mean of the context views {first['copy_mean_psnr']:.2f} dB, the better context view "
+                  f"{first['copy_best_psnr']:.2f} dB."]  # fmt: skip
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: list[str] = []
+    if "--" in argv:
+        i = argv.index("--")
+        argv, extra = argv[:i], argv[i + 1 :]
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", default="conf/demo.yaml", help="`aesplat fit` config of every run")
+    parser.add_argument("--data", type=Path, default=Path("outputs/demo"), help="shards under DATA/shards")
+    parser.add_argument("--size", type=int, default=42, help="image side of the shards and of the model input")
+    parser.add_argument("--scene-args", default="", help="data_prep/synthetic.py options when making shards")
+    parser.add_argument("--steps", type=int, default=20000, help="training steps of every run")
+    parser.add_argument("--every", type=int, default=500, help="evaluate and checkpoint every N steps")
+    parser.add_argument("--runs", nargs="+", default=["pose-free", "posed"], help="named runs, in this order")
+    parser.add_argument("--define", action="append", default=[], metavar="NAME=ARGS",
+                        help="a run of your own: NAME='--model.key value ...'")  # fmt: skip
+    parser.add_argument("--out", type=Path, default=Path("outputs/curves"), help="one folder per run, the plot")
+    args = parser.parse_args(argv)
+
+    runs = lever_args(args.steps)
+    for definition in args.define:
+        name, sep, overrides = definition.partition("=")
+        if not sep or not name:
+            parser.error(f"--define takes NAME='ARGS', got {definition!r}")
+        runs[name] = shlex.split(overrides)
+        if name not in args.runs:
+            args.runs.append(name)
+    unknown = [name for name in args.runs if name not in runs]
+    if unknown:
+        parser.error(f"unknown run(s) {', '.join(unknown)}; known: {', '.join(runs)} (or --define NAME=ARGS)")
+
+    from aesplat.cli import run_lightning
+
+    shards = ensure_shards(args.data, args.size, args.scene_args)
+    for name in args.runs:
+        run_dir = args.out / name
+        csv_path = run_dir / "curve.csv"
+        if finished(csv_path, args.steps):
+            print(f"learning_curves: {name}: finished ({csv_path})")
+            continue
+        start = time.perf_counter()
+        print(f"learning_curves: {name}: {shlex.join(runs[name] + extra)}", flush=True)
+        overrides = runs[name] + extra
+        run_lightning(fit_args(args.config, shards, args.size, run_dir, args.steps, args.every, overrides))
+        print(f"learning_curves: {name}: done in {time.perf_counter() - start:.0f} s wall", flush=True)
+
+    curves = {name: read_curve(args.out / name / "curve.csv") for name in args.runs}
+    title = f"{args.config}, {args.size} px, shards {shards}"
+    plot_curves(curves, args.out / "curves.png", title)
+    table = summary_table(curves)
+    (args.out / "CURVES.md").write_text("\n".join([f"# Learning curves ({title})", "", *table]) + "\n")
+    print("\n".join(table))
+    print(f"learning_curves: wrote {args.out / 'curves.png'} and {args.out / 'CURVES.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,151 @@
+"""Learning curves: held-out test metrics at fixed step intervals, against steps and training seconds.
+
+``LearningCurve`` is a callback for `aesplat fit`; ``benchmarks/learning_curves.py`` adds it to each run it
+trains (``--trainer.callbacks+=aesplat.train.curves.LearningCurve``). At step 0 (the untrained model), every
+``every_n_steps`` steps and at the last step it evaluates the model on the data module's test scenes, exactly
+as `aesplat test` scores them (``AESplatModule._evaluate``: image metrics with the run's own cameras, pose
+errors against the ground truth), and rewrites a CSV with one row per point. ``train_seconds`` is the wall
+time spent training (data loading, forward, backward, update, checkpoint writes), evaluation excluded; it is
+kept in the checkpoints, so a resumed run continues the clock where its checkpoint left it. Rows written
+after the checkpoint a run resumes from are dropped (those steps are trained again), and no finished point is
+evaluated twice. The copy-the-context yardsticks (``context_copy_psnr``) are the same at every point and are
+repeated in each row so that every CSV stands alone.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from pathlib import Path
+
+import torch
+from lightning.pytorch import Callback, LightningModule, Trainer
+
+from .metrics import COPY_BEST, COPY_MEAN, context_copy_psnr
+
+CURVE_COLUMNS = (
+    "step", "train_seconds", "psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "num_scenes",
+    "copy_mean_psnr", "copy_best_psnr",
+)  # fmt: skip
+_METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg")
+
+
+def read_curve(path: str | Path) -> list[dict[str, float]]:
+    """Rows of a learning-curve CSV as floats (NaN where a metric is unavailable); [] when there is none."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    with open(path) as f:
+        return [{k: float(v) if v not in ("", None) else math.nan for k, v in row.items()} for row in
+                csv.DictReader(f)]  # fmt: skip
+
+
+def write_curve(path: str | Path, rows: list[dict[str, float]]) -> None:
+    """Write rows (CURVE_COLUMNS; NaN or missing as empty cells) through a temporary file, so an interrupted
+    write never leaves half a curve."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CURVE_COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            cells = {k: row.get(k, math.nan) for k in CURVE_COLUMNS}
+            writer.writerow({k: "" if isinstance(v, float) and math.isnan(v) else _cell(k, v) for k, v in
+                             cells.items()})  # fmt: skip
+    tmp.replace(path)
+
+
+def _cell(key: str, value: float) -> str:
+    if key in ("step", "num_scenes"):
+        return str(int(value))
+    return f"{value:.6g}"
+
+
+class LearningCurve(Callback):
+    """Evaluate on the test scenes at step 0, every ``every_n_steps`` steps and at ``trainer.max_steps``.
+
+    csv_path: the curve's CSV (rewritten at each point). max_scenes: evaluate on the first this many test
+    scenes only (None: all; the scenes are read once and kept in memory). Single-device runs only.
+    """
+
+    def __init__(self, csv_path: str, every_n_steps: int = 500, max_scenes: int | None = None) -> None:
+        if every_n_steps < 1:
+            raise ValueError(f"LearningCurve every_n_steps must be >= 1, got {every_n_steps}")
+        self.csv_path = Path(csv_path)
+        self.every_n_steps = every_n_steps
+        self.max_scenes = max_scenes
+        self.train_seconds = 0.0
+        self._clock: float | None = None
+        self._batches: list | None = None
+        self._copy: dict[str, float] | None = None
+
+    # ------------------------------------------------------------------------------------------ state
+    def state_dict(self) -> dict[str, float]:
+        return {"train_seconds": self.train_seconds}
+
+    def load_state_dict(self, state_dict: dict[str, float]) -> None:
+        self.train_seconds = float(state_dict["train_seconds"])
+
+    # ------------------------------------------------------------------------------------------ hooks
+    def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        if trainer.world_size > 1:
+            raise RuntimeError("LearningCurve evaluates on one device; train learning curves with devices=1")
+        step = trainer.global_step
+        rows = [r for r in read_curve(self.csv_path) if r["step"] <= step]  # later rows: trained again now
+        write_curve(self.csv_path, rows)
+        if not any(r["step"] == step for r in rows):
+            self._record(trainer, pl_module, rows)
+        self._clock = time.perf_counter()
+
+    def on_train_batch_end(self, trainer: Trainer, pl_module: LightningModule, outputs, batch, batch_idx: int):
+        step = trainer.global_step
+        if step % self.every_n_steps and step != trainer.max_steps:
+            return
+        now = time.perf_counter()
+        self.train_seconds += now - (self._clock if self._clock is not None else now)
+        rows = [r for r in read_curve(self.csv_path) if r["step"] < step]
+        self._record(trainer, pl_module, rows)
+        self._clock = time.perf_counter()
+
+    # ------------------------------------------------------------------------------------------ evaluation
+    def _test_batches(self, trainer: Trainer, pl_module: LightningModule) -> list:
+        """The test scenes' batches, read once (the data module's test loader, in its fixed order)."""
+        if self._batches is None:
+            batches, scenes = [], 0
+            for batch in trainer.datamodule.test_dataloader():
+                if self.max_scenes is not None and scenes >= self.max_scenes:
+                    break
+                batches.append(batch)
+                scenes += batch.batch_size
+            if not batches:
+                raise RuntimeError("LearningCurve: the data module's test split has no scenes")
+            self._batches = batches
+        return self._batches
+
+    @torch.no_grad()
+    def _record(self, trainer: Trainer, pl_module: LightningModule, rows: list[dict[str, float]]) -> None:
+        """Evaluate at the current step and append the row to ``rows`` and the CSV."""
+        was_training = pl_module.training
+        pl_module.eval()
+        devices = [pl_module.device] if pl_module.device.type == "cuda" else []
+        sums, counts, pairs = dict.fromkeys(_METRICS, 0.0), dict.fromkeys(_METRICS, 0), []
+        with torch.random.fork_rng(devices=devices):  # evaluating must not change the training run's RNG
+            for raw in self._test_batches(trainer, pl_module):
+                batch = pl_module.on_after_batch_transfer(raw.to(pl_module.device), 0)
+                metrics, _ = pl_module._evaluate(batch)  # per scene, as `aesplat test` scores them
+                for key, values in metrics.items():
+                    sums[key] += float(values.sum())
+                    counts[key] += values.numel()
+                if self._copy is None:
+                    pairs += [(batch.context.images[i : i + 1].cpu(), batch.target.images[i : i + 1].cpu())
+                              for i in range(batch.batch_size)]  # fmt: skip
+        pl_module.train(was_training)
+        if self._copy is None:
+            self._copy = context_copy_psnr(pairs)
+        row = {k: sums[k] / counts[k] if counts[k] else math.nan for k in _METRICS}
+        row.update(step=trainer.global_step, train_seconds=self.train_seconds, num_scenes=counts["psnr"],
+                   copy_mean_psnr=self._copy[COPY_MEAN], copy_best_psnr=self._copy[COPY_BEST])  # fmt: skip
+        if trainer.is_global_zero:
+            write_curve(self.csv_path, [*rows, row])

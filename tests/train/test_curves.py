@@ -1,0 +1,57 @@
+"""Learning curves: benchmarks/learning_curves.py with the LearningCurve callback, on the smoke shards."""
+
+import importlib.util
+import math
+from pathlib import Path
+
+from aesplat.train.curves import CURVE_COLUMNS, read_curve, write_curve
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _driver():
+    spec = importlib.util.spec_from_file_location("learning_curves", ROOT / "benchmarks" / "learning_curves.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _run(driver, shards: Path, out: Path, steps: int, runs: list[str]) -> None:
+    argv = ["--config", str(ROOT / "conf" / "smoke.yaml"), "--data", str(shards.parent), "--size", "28",
+            "--steps", str(steps), "--every", "1", "--out", str(out), "--runs", *runs]  # fmt: skip
+    assert driver.main(argv) == 0
+
+
+def test_curves_of_pose_free_and_posed_runs_then_resume_without_reevaluating(smoke_shards, tmp_path):
+    driver = _driver()
+    out = tmp_path / "curves"
+    _run(driver, smoke_shards, out, 2, ["pose-free", "posed"])
+    free, posed = read_curve(out / "pose-free" / "curve.csv"), read_curve(out / "posed" / "curve.csv")
+    for rows in (free, posed):
+        assert [r["step"] for r in rows] == [0, 1, 2]
+        assert rows[0]["train_seconds"] == 0 and rows[0]["train_seconds"] < rows[1]["train_seconds"]
+        assert rows[1]["train_seconds"] < rows[2]["train_seconds"]
+        assert all(math.isfinite(r["psnr"]) and 0 < r["ssim"] <= 1 and r["num_scenes"] == 2 for r in rows)
+    assert all(math.isfinite(r["rot_err_deg"]) and math.isfinite(r["trans_err_deg"]) for r in free)
+    assert all(math.isnan(r["rot_err_deg"]) for r in posed)  # given cameras: no pose error to measure
+    # Same test scenes: the copy yardsticks agree across runs and points; the untrained models differ only
+    # in where their cameras come from.
+    assert {(r["copy_mean_psnr"], r["copy_best_psnr"]) for r in free + posed} == {
+        (free[0]["copy_mean_psnr"], free[0]["copy_best_psnr"])
+    }
+    assert (out / "curves.png").stat().st_size > 0
+    table = (out / "CURVES.md").read_text()
+    assert "| pose-free | 2 |" in table and "| posed | 2 |" in table and "n/a → n/a" in table
+
+    # An interrupted curve: a row written after the last checkpoint (step 2) is stale, the longer run resumes
+    # from step 2 and keeps the finished points as they were; the finished posed run is not trained again.
+    stale = {**free[-1], "step": 3, "psnr": 99.0}
+    write_curve(out / "pose-free" / "curve.csv", [*free, stale])
+    posed_csv = (out / "posed" / "curve.csv").read_text()
+    _run(driver, smoke_shards, out, 4, ["pose-free"])
+    resumed = read_curve(out / "pose-free" / "curve.csv")
+    assert [r["step"] for r in resumed] == [0, 1, 2, 3, 4]
+    assert resumed[:3] == free, "finished points are not evaluated again"
+    assert resumed[3]["psnr"] != 99.0 and resumed[3]["train_seconds"] > free[2]["train_seconds"]
+    assert (out / "posed" / "curve.csv").read_text() == posed_csv
+    assert list(read_curve(out / "posed" / "curve.csv")[0]) == list(CURVE_COLUMNS)
