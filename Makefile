@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test test-slow lint format demo bench clean
+.PHONY: venv test test-slow test-slurm lint format demo bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -22,6 +22,14 @@ test: $(STAMP)
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
+
+# `make test-slurm`: the `slurm` tests (sbatch jobs, preemption and requeue included) on a one-node SLURM cluster
+# on this machine (slurm/local_cluster.sh; as root it installs the packages when missing). A cluster that was
+# already running is used and left running; one started here is stopped afterwards.
+test-slurm: $(STAMP)
+	@if slurm/local_cluster.sh status >/dev/null; then started=0; else slurm/local_cluster.sh start && started=1; fi; \
+	$(PY) -m pytest -q -m slurm; status=$$?; \
+	if [ "$$started" = 1 ]; then slurm/local_cluster.sh stop; fi; exit $$status
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -3,7 +3,9 @@
 import os
 import re
 import shlex
+import signal
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -130,3 +132,25 @@ def test_eval_launch_needs_a_checkpoint(tmp_path):
         tmp_path, "eval.sbatch", shlex.split("--ckpt_path x.ckpt"), **env, AESPLAT_SLURM_CPU="1"
     )
     assert proc.returncode == 0 and argv[2] == "--trainer.accelerator=cpu"
+
+
+def test_train_script_passes_a_sigusr1_of_the_batch_shell_on_to_srun(tmp_path):
+    """`--signal=B:USR1@90` / `scancel --signal=USR1 --batch` signal the batch shell alone: srun must get it."""
+    got = tmp_path / "srun_got_usr1"
+    fake = tmp_path / "bin" / "srun"
+    fake.parent.mkdir()
+    fake.write_text(
+        f"#!/usr/bin/env bash\ntrap 'touch {got}; exit 0' USR1\nfor i in $(seq 300); do sleep 0.1; done\n"
+    )
+    fake.chmod(0o755)
+    env = {
+        **os.environ,
+        **SLURM_ENV,
+        "PATH": f"{fake.parent}:{os.environ['PATH']}",
+        "SLURM_SUBMIT_DIR": str(tmp_path),
+    }
+    shell = subprocess.Popen(["bash", str(SLURM / "train.sbatch")], env=env, stdout=subprocess.PIPE, text=True)
+    assert "restart 0" in shell.stdout.readline()  # the script is past its checks and about to start srun
+    time.sleep(1.0)
+    shell.send_signal(signal.SIGUSR1)
+    assert shell.wait(timeout=20) == 0 and got.exists()

@@ -78,4 +78,4 @@ class RequeueAtStepBoundary(Callback):
         while not trainer.received_sigterm and time.monotonic() < deadline:
             time.sleep(0.2)
         if not trainer.received_sigterm:
-            rank_zero_warn(f"no SIGTERM {self.wait_for_kill:.0f} s after the requeue: training on")
+            rank_zero_warn(f"no SIGTERM {self.wait_for_kill:g} s after the requeue: training on")
