@@ -70,7 +70,7 @@ def job_info(env: dict, job_id: str) -> dict[str, str]:
     return dict(re.findall(r"(\w+)=(\S*)", proc.stdout))
 
 
-def wait_until(condition, what: str, timeout: float = 600.0, every: float = 0.5):
+def wait_until(condition, what: str, timeout: float = 1200.0, every: float = 0.5):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         result = condition()
@@ -85,7 +85,11 @@ def wait_for_end(env: dict, job_id: str, log: Path) -> dict[str, str]:
         info = job_info(env, job_id)
         return info if info["JobState"] in FINAL_STATES else None
 
-    info = wait_until(ended, f"job {job_id} to end")
+    try:
+        info = wait_until(ended, f"job {job_id} to end")
+    except AssertionError:
+        subprocess.run(["scancel", job_id], env=env)  # do not leave it to hold the node for the next tests
+        raise
     info["log"] = log.read_text() if log.exists() else ""
     return info
 
