@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test test-slow test-torch-floor test-gpu lint format demo bench curves clean
+.PHONY: venv test test-slow test-torch-floor test-gpu test-slurm lint format demo bench curves clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -44,12 +44,21 @@ $(FLOOR_STAMP): pyproject.toml
 
 test-torch-floor: $(FLOOR_STAMP)
 	$(FLOOR_PY) -c "import torch; print('torch', torch.__version__)"
-	$(FLOOR_PY) -m pytest -q $(FLOOR_TESTS)
+	$(FLOOR_PY) -m pytest -q -m "not slow and not slurm" $(FLOOR_TESTS)
+
 # `make test-gpu` (on a CUDA machine): the `gpu`-marked tests, with gsplat from the `cuda` extra (it compiles its
 # kernels on first import, about a minute). Each test says why when it skips (no CUDA, no gsplat, no bf16).
 test-gpu: $(STAMP)
 	$(PIP) install --quiet -e ".[dev,cuda]"
 	$(PY) -m pytest -q -rs -m gpu
+
+# `make test-slurm`: the `slurm` tests (sbatch jobs, preemption and requeue included) on a one-node SLURM cluster
+# on this machine (slurm/local_cluster.sh; as root it installs the packages when missing). A cluster that was
+# already running is used and left running; one started here is stopped afterwards.
+test-slurm: $(STAMP)
+	@if slurm/local_cluster.sh status >/dev/null; then started=0; else slurm/local_cluster.sh start && started=1; fi; \
+	$(PY) -m pytest -q -m slurm; status=$$?; \
+	if [ "$$started" = 1 ]; then slurm/local_cluster.sh stop; fi; exit $$status
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

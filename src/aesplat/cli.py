@@ -17,6 +17,8 @@ With ``--ckpt_path FILE``, LightningCLI takes the whole ``model`` section from t
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 import warnings
 from collections.abc import Sequence
@@ -46,6 +48,7 @@ def _lightning_cli():
     from aesplat.data import DataModule
     from aesplat.train import AESplatModule
     from aesplat.train.callbacks import Throughput
+    from aesplat.train.requeue import RequeueAtStepBoundary
     from aesplat.train.run_dir import latest_checkpoint, wandb_mode, wandb_run_id
 
     class AESplatCLI(LightningCLI):
@@ -94,7 +97,9 @@ def _lightning_cli():
                     project=wb.project, entity=wb.entity, name=wb.name or run_dir.name, save_dir=str(run_dir),
                     id=wandb_run_id(run_dir), offline=mode == "offline", tags=list(wb.tags), **extra,
                 )  # fmt: skip
-            return super().instantiate_trainer(**kwargs)
+            trainer = super().instantiate_trainer(**kwargs)
+            trainer.callbacks.append(RequeueAtStepBoundary())  # SLURM preemption between steps only
+            return trainer
 
         def before_fit(self) -> None:
             fit = self.config_init["fit"]
@@ -131,9 +136,23 @@ def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None
     )
 
 
+def hold_requeue_signal() -> bool:
+    """Inside a SLURM job, block SIGUSR1 (the requeue signal) in this thread; True if it did so.
+
+    Called before torch is imported (which starts a thread): every thread and process started afterwards
+    inherits the mask, so the signal waits, pending, for ``aesplat.train.requeue.RequeueAtStepBoundary``.
+    """
+    if sys.platform == "win32" or "SLURM_JOB_ID" not in os.environ:
+        return False
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGUSR1})
+    return True
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of the `aesplat` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["fit"]:
+        hold_requeue_signal()
     if argv in ([], ["-h"], ["--help"]):
         print("aesplat fit|validate|test -c CONFIG.yaml [--key value ...]  train / evaluate (LightningCLI)")
         print("aesplat predict --help                    images -> Gaussians, cameras, renders")

@@ -3,7 +3,9 @@
 import os
 import re
 import shlex
+import signal
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
@@ -66,7 +68,9 @@ def test_train_launch_matches_lightning_slurm_environment(tmp_path, monkeypatch)
     )
     assert proc.returncode == 0, proc.stderr
     assert argv[0].endswith("aesplat") and argv[1] == "fit"
-    assert argv[2:6] == ["-c", "conf/re10k.yaml", "--data.batch_size", "2"]
+    # The accelerator is a default the user's configs and overrides may change; what follows from the
+    # allocation (devices, nodes) and the resume come after them.
+    assert argv[2:7] == ["--trainer.accelerator=gpu", "-c", "conf/re10k.yaml", "--data.batch_size", "2"]
     options = dict(a.split("=", 1) for a in argv if a.startswith("--") and "=" in a)
     assert options["--trainer.devices"] == "4" and options["--trainer.num_nodes"] == "2"
     assert options["--ckpt_path"] == "last", "a requeued job must resume from its run directory"
@@ -87,7 +91,25 @@ def test_train_launch_matches_lightning_slurm_environment(tmp_path, monkeypatch)
 def test_train_launch_defaults_to_re10k(tmp_path):
     proc, argv = launch(tmp_path, "train.sbatch", [], **SLURM_ENV)
     assert proc.returncode == 0, proc.stderr
-    assert argv[2:4] == ["-c", "conf/re10k.yaml"]
+    assert argv[3:5] == ["-c", "conf/re10k.yaml"]
+
+
+def test_cpu_switch_trains_on_the_cpu_with_any_number_of_tasks(tmp_path):
+    env = {**SLURM_ENV, "AESPLAT_SLURM_CPU": "1", "SLURM_NTASKS_PER_NODE": "3(x2)"}
+    env.pop("SLURM_GPUS_ON_NODE")
+    proc, argv = launch(tmp_path, "train.sbatch", ["-c", "conf/smoke.yaml"], **env)
+    assert proc.returncode == 0, proc.stderr
+    assert argv[2:5] == ["--trainer.accelerator=cpu", "-c", "conf/smoke.yaml"]
+    assert "--trainer.devices=3" in argv and "--trainer.num_nodes=2" in argv
+
+    # The user's own accelerator wins over the script's default.
+    (tmp_path / "user").mkdir()
+    proc, argv = launch(tmp_path / "user", "train.sbatch", ["--trainer.accelerator", "cuda"], **SLURM_ENV)
+    assert argv.index("cuda") > argv.index("--trainer.accelerator=gpu")
+
+    (tmp_path / "bad").mkdir()
+    proc, argv = launch(tmp_path / "bad", "train.sbatch", [], **{**SLURM_ENV, "AESPLAT_SLURM_CPU": "yes"})
+    assert proc.returncode != 0 and not argv and "AESPLAT_SLURM_CPU" in proc.stderr
 
 
 def test_train_launch_refuses_tasks_not_matching_gpus(tmp_path):
@@ -105,3 +127,30 @@ def test_eval_launch_needs_a_checkpoint(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     assert argv[1] == "test" and "--ckpt_path" in argv and "--trainer.devices=1" in argv
+    assert argv[2:4] == ["--trainer.accelerator=gpu", "-c"]
+    proc, argv = launch(
+        tmp_path, "eval.sbatch", shlex.split("--ckpt_path x.ckpt"), **env, AESPLAT_SLURM_CPU="1"
+    )
+    assert proc.returncode == 0 and argv[2] == "--trainer.accelerator=cpu"
+
+
+def test_train_script_passes_a_sigusr1_of_the_batch_shell_on_to_srun(tmp_path):
+    """`--signal=B:USR1@90` / `scancel --signal=USR1 --batch` signal the batch shell alone: srun must get it."""
+    got = tmp_path / "srun_got_usr1"
+    fake = tmp_path / "bin" / "srun"
+    fake.parent.mkdir()
+    fake.write_text(
+        f"#!/usr/bin/env bash\ntrap 'touch {got}; exit 0' USR1\nfor i in $(seq 300); do sleep 0.1; done\n"
+    )
+    fake.chmod(0o755)
+    env = {
+        **os.environ,
+        **SLURM_ENV,
+        "PATH": f"{fake.parent}:{os.environ['PATH']}",
+        "SLURM_SUBMIT_DIR": str(tmp_path),
+    }
+    shell = subprocess.Popen(["bash", str(SLURM / "train.sbatch")], env=env, stdout=subprocess.PIPE, text=True)
+    assert "restart 0" in shell.stdout.readline()  # the script is past its checks and about to start srun
+    time.sleep(1.0)
+    shell.send_signal(signal.SIGUSR1)
+    assert shell.wait(timeout=20) == 0 and got.exists()

@@ -1,0 +1,83 @@
+"""The requeue signal waits for the end of the step under way, then Lightning's SLURM handler takes it there.
+
+One process, SLURM's environment variables set by hand and a fake `scontrol`: no cluster needed (the real
+thing, two ranks and a requeued job, is tests/train/test_slurm_jobs.py).
+"""
+
+import os
+import signal
+import threading
+
+import pytest
+import torch
+from lightning.pytorch import Callback
+
+from aesplat.train.requeue import REQUEUE_SIGNAL, RequeueAtStepBoundary
+
+from .test_module import make_data, make_module, make_trainer
+
+SLURM_TASK = {
+    "SLURM_JOB_ID": "77", "SLURM_JOB_NAME": "aesplat-train", "SLURM_NTASKS": "1", "SLURM_NTASKS_PER_NODE": "1",
+    "SLURM_NNODES": "1", "SLURM_NODELIST": "localhost", "SLURM_PROCID": "0", "SLURM_LOCALID": "0",
+    "SLURM_NODEID": "0",
+}  # fmt: skip
+
+
+class SignalDuringStep(Callback):
+    """Send the requeue signal to the main thread at the start of training batch ``at`` (mid-step)."""
+
+    def __init__(self, at: int) -> None:
+        self.at = at
+        self.steps_after: list[int] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if batch_idx == self.at:
+            signal.pthread_kill(threading.main_thread().ident, REQUEUE_SIGNAL)
+        elif batch_idx > self.at:
+            self.steps_after.append(trainer.global_step)
+
+
+@pytest.fixture
+def slurm_task(monkeypatch, tmp_path):
+    """SLURM task variables, a `scontrol` recording its arguments, the signal held as `aesplat fit` holds it."""
+    for key, value in SLURM_TASK.items():
+        monkeypatch.setenv(key, value)
+    calls = tmp_path / "scontrol_calls"
+    fake = tmp_path / "bin" / "scontrol"
+    fake.parent.mkdir()
+    fake.write_text(f'#!/usr/bin/env bash\necho "$@" >> {calls}\n')
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{fake.parent}:{os.environ['PATH']}")
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {REQUEUE_SIGNAL})
+    yield calls
+    signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+    assert REQUEUE_SIGNAL not in signal.sigpending()
+
+
+def test_requeue_waits_for_the_end_of_the_step(smoke_shards, tmp_path, slurm_task):
+    torch.manual_seed(0)
+    sender = SignalDuringStep(at=1)
+    requeue = RequeueAtStepBoundary(wait_for_kill=0.5)  # no SLURM here to send SIGTERM: train on after it
+    trainer = make_trainer(4, tmp_path, callbacks=[sender, requeue])
+    trainer.fit(make_module(), make_data(smoke_shards))
+
+    assert requeue.active and requeue.done
+    assert slurm_task.read_text().split() == ["requeue", "77"]
+    hpc = sorted(p.name for p in tmp_path.glob("hpc_ckpt_*.ckpt"))
+    assert hpc == ["hpc_ckpt_1.ckpt"]
+    ckpt = torch.load(tmp_path / hpc[0], weights_only=True, map_location="cpu")
+    # The signal came during step 2 (batch 1): the checkpoint holds the state after step 2, as last.ckpt would.
+    assert ckpt["global_step"] == 2
+    assert (
+        ckpt["loops"]["fit_loop"]["epoch_loop.batch_progress"]["total"]["completed"] == 1
+    )  # batch 1: next hook
+    assert sender.steps_after == [2, 3]
+
+
+def test_without_slurm_the_signal_is_not_held(smoke_shards, tmp_path, slurm_task, monkeypatch):
+    monkeypatch.setenv("SLURM_JOB_NAME", "bash")  # an interactive allocation: Lightning does not requeue
+    requeue = RequeueAtStepBoundary()
+    trainer = make_trainer(1, tmp_path, callbacks=[requeue])
+    trainer.fit(make_module(), make_data(smoke_shards))
+    assert not requeue.active
+    assert REQUEUE_SIGNAL not in signal.pthread_sigmask(signal.SIG_BLOCK, set())

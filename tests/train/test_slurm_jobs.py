@@ -1,0 +1,228 @@
+"""slurm/train.sbatch and slurm/eval.sbatch submitted to a real SLURM cluster (slurm/local_cluster.sh, CPU).
+
+Two ranks train under Lightning's SLURM environment on different data; a job preempted the way SLURM does it
+(SIGUSR1 to its tasks) writes the HPC checkpoint, is requeued and ends with the parameters of an uninterrupted
+job; the evaluation job writes its tables; a job whose tasks and GPUs per node differ stops at once.
+Skipped when no cluster answers, except in CI (CI=true), where that is a failure.
+"""
+
+import csv
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[2]
+SLURM = REPO / "slurm"
+CLUSTER_CONF = Path(os.environ.get("AESPLAT_SLURM_DIR", "/tmp/aesplat-slurm")) / "slurm.conf"
+STEPS = 6  # per training job; last.ckpt every 2 steps
+CPU_JOB = ["--gpus-per-node=0", "--ntasks-per-node=2", "--cpus-per-task=1"]
+FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "BOOT_FAIL"}
+
+pytestmark = pytest.mark.slurm
+
+
+@pytest.fixture(scope="module")
+def job_env() -> dict[str, str]:
+    """Environment of the submitting process (sbatch hands it to the job): cluster, CPU mode, offline wandb."""
+    conf = os.environ.get("SLURM_CONF") or str(CLUSTER_CONF)
+    problem = None
+    if shutil.which("sbatch") is None:
+        problem = "SLURM's client commands are not installed"
+    else:
+        proc = subprocess.run(["sinfo", "-h", "-o", "%T"], env={**os.environ, "SLURM_CONF": conf},
+                              capture_output=True, text=True, timeout=30)  # fmt: skip
+        if proc.returncode != 0 or not proc.stdout.strip():
+            problem = f"no SLURM cluster answers at {conf} ({proc.stderr.strip()[-200:]})"
+    if problem:
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"{problem}; CI must start one (slurm/local_cluster.sh start, see .ci/run)")
+        pytest.skip(f"{problem}: start one with `slurm/local_cluster.sh start`, or run `make test-slurm`")
+    return {
+        **os.environ,
+        "SLURM_CONF": conf,
+        "AESPLAT": str(Path(sys.executable).parent / "aesplat"),
+        "AESPLAT_SLURM_CPU": "1",
+        "PYTHONPATH": f"{REPO / 'src'}:{REPO}",  # this checkout, and tests.train.helpers for the recorder
+        "WANDB_MODE": "offline",
+    }
+
+
+def sbatch(env: dict, script: str, options: list[str], args: list[str], log: Path) -> str:
+    """Submit ``slurm/<script>`` from the repository root; returns the job id."""
+    command = ["sbatch", "--parsable", f"--output={log}", *options, str(SLURM / script), *args]
+    proc = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout.strip().split(";")[0]
+
+
+def job_info(env: dict, job_id: str) -> dict[str, str]:
+    """``scontrol show job`` as a dict (JobState, Restarts, ExitCode, ...)."""
+    proc = subprocess.run(["scontrol", "show", "job", "-o", job_id], env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    return dict(re.findall(r"(\w+)=(\S*)", proc.stdout))
+
+
+def wait_until(condition, what: str, timeout: float = 1200.0, every: float = 0.5):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        result = condition()
+        if result:
+            return result
+        time.sleep(every)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def wait_for_end(env: dict, job_id: str, log: Path) -> dict[str, str]:
+    def ended():
+        info = job_info(env, job_id)
+        return info if info["JobState"] in FINAL_STATES else None
+
+    try:
+        info = wait_until(ended, f"job {job_id} to end")
+    except AssertionError:
+        subprocess.run(["scancel", job_id], env=env)  # do not leave it to hold the node for the next tests
+        raise
+    info["log"] = log.read_text() if log.exists() else ""
+    return info
+
+
+def fit_args(shards: Path, run_dir: Path, record: Path, tmp_path: Path) -> list[str]:
+    overlay = tmp_path / "record.yaml"
+    overlay.write_text(
+        "trainer:\n  callbacks:\n    - class_path: tests.train.helpers.RecordTrainingScenes\n"
+        f"      init_args:\n        out_dir: {record}\n"
+    )
+    return ["-c", "conf/smoke.yaml", "-c", str(overlay), "--data.root", str(shards),
+            "--trainer.default_root_dir", str(run_dir), "--trainer.max_steps", str(STEPS),
+            "--data.train_batches_per_epoch", str(STEPS), "--last_checkpoint.every_n_train_steps", "2",
+            "--trainer.enable_progress_bar", "false"]  # fmt: skip
+
+
+def records(folder: Path) -> list[dict]:
+    return [json.loads((folder / f"rank{r}.json").read_text()) for r in (0, 1)]
+
+
+def weights(path: Path) -> dict[str, torch.Tensor]:
+    ckpt = torch.load(path, weights_only=True, map_location="cpu")
+    return {"global_step": ckpt["global_step"], **ckpt["state_dict"]}
+
+
+def wandb_run_ids(run_dir: Path) -> list[str]:
+    """The run id of every offline wandb run in the run directory (``wandb/offline-run-<time>-<id>``)."""
+    return sorted(p.name.rsplit("-", 1)[1] for p in (run_dir / "wandb").glob("offline-run-*"))
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(job_env, smoke_shards, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("slurm_uninterrupted")
+    run_dir, record, log = tmp / "run", tmp / "record", tmp / "job.out"
+    started = time.monotonic()
+    job_id = sbatch(job_env, "train.sbatch", CPU_JOB, fit_args(smoke_shards, run_dir, record, tmp), log)
+    info = wait_for_end(job_env, job_id, log)
+    info["seconds"] = time.monotonic() - started
+    return info, run_dir, record
+
+
+@pytest.fixture(scope="module")
+def preempted(job_env, smoke_shards, uninterrupted, tmp_path_factory):
+    """The same job, sent SIGUSR1 (as SLURM does before the time limit) once it has saved step 2."""
+    tmp = tmp_path_factory.mktemp("slurm_preempted")
+    run_dir, record, log = tmp / "run", tmp / "record", tmp / "job.out"
+    started = time.monotonic()
+    job_id = sbatch(job_env, "train.sbatch", CPU_JOB, fit_args(smoke_shards, run_dir, record, tmp), log)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    wait_until(lambda: last.exists() or job_info(job_env, job_id)["JobState"] in FINAL_STATES, "step 2")
+    assert job_info(job_env, job_id)["JobState"] == "RUNNING", log.read_text()
+    # What `#SBATCH --signal=SIGUSR1@90` does 90 s before the time limit: signal every task of the job.
+    subprocess.run(["scancel", "--signal=USR1", job_id], env=job_env, check=True)
+    info = wait_for_end(job_env, job_id, log)
+    info["seconds"] = time.monotonic() - started
+    return info, run_dir, record
+
+
+def test_two_cpu_ranks_train_under_lightnings_slurm_environment(uninterrupted):
+    info, run_dir, record = uninterrupted
+    assert info["JobState"] == "COMPLETED", info["log"][-6000:]
+    assert "1 node(s) x 2 CPU process(es)" in info["log"]
+    ranks = records(record)
+    for rank, seen in enumerate(ranks):
+        assert (seen["world_size"], seen["slurm_procid"]) == (2, str(rank))
+        assert seen["cluster_environment"] == "SLURMEnvironment"
+        # srun started this process (no launcher of Lightning's spawned it)
+        assert seen["processes_started_outside"] and seen["parent_process"] == "slurmstepd", seen
+        assert len(seen["seen"]) == STEPS
+    samples = [{json.dumps(x) for x in seen["seen"]} for seen in ranks]
+    assert samples[0].isdisjoint(samples[1]), "both ranks trained on the same samples"
+    assert weights(run_dir / "checkpoints" / "last.ckpt")["global_step"] == STEPS
+    assert (run_dir / "config.yaml").exists()
+    assert len(wandb_run_ids(run_dir)) == 1
+
+
+def test_preempted_job_is_requeued_and_ends_as_if_uninterrupted(uninterrupted, preempted):
+    info, run_dir, record = preempted
+    assert info["JobState"] == "COMPLETED", info["log"][-6000:]
+    assert info["Restarts"] == "1", info
+    assert "(restart 0)" in info["log"] and "(restart 1)" in info["log"]
+
+    hpc = sorted(run_dir.glob("hpc_ckpt_*.ckpt"))
+    assert [p.name for p in hpc] == ["hpc_ckpt_1.ckpt"], info["log"][-6000:]
+    stopped_at = weights(hpc[0])["global_step"]
+    assert 2 <= stopped_at < STEPS
+    assert f"resuming from {hpc[0]}" in info["log"]
+
+    # The requeued job started at the checkpoint's step and saw exactly the batches the uninterrupted one saw
+    # from there on, on both ranks: no step lost, none repeated.
+    reference = records(uninterrupted[2])
+    for rank, seen in enumerate(records(record)):
+        assert seen["slurm_restart_count"] == "1"
+        assert seen["first_step"] == stopped_at
+        assert seen["seen"] == reference[rank]["seen"][stopped_at:]
+
+    final, expected = (
+        weights(run_dir / "checkpoints" / "last.ckpt"),
+        weights(uninterrupted[1] / "checkpoints/last.ckpt"),
+    )
+    assert final["global_step"] == expected["global_step"] == STEPS
+    for name, value in expected.items():
+        if name != "global_step":
+            torch.testing.assert_close(final[name], value, rtol=1e-5, atol=1e-6, msg=name)
+
+    run_id = (run_dir / "wandb_run_id").read_text().strip()
+    assert wandb_run_ids(run_dir) == [run_id, run_id], "the requeued job must continue the same wandb run"
+
+
+def test_eval_job_writes_per_scene_csv_and_summary(job_env, smoke_shards, uninterrupted, tmp_path):
+    _, run_dir, _ = uninterrupted
+    log, out, ckpt = tmp_path / "eval.out", run_dir / "test", run_dir / "checkpoints" / "last.ckpt"
+    args = ["-c", "conf/smoke.yaml", "--data.root", str(smoke_shards), "--ckpt_path", str(ckpt),
+            "--trainer.default_root_dir", str(run_dir), "--trainer.logger", "false",
+            "--trainer.enable_progress_bar", "false"]  # fmt: skip
+    job_id = sbatch(job_env, "eval.sbatch", ["--gpus-per-node=0", "--cpus-per-task=1"], args, log)
+    info = wait_for_end(job_env, job_id, log)
+    assert info["JobState"] == "COMPLETED", info["log"][-6000:]
+    with open(out / "per_scene.csv") as f:
+        rows = list(csv.DictReader(f))
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(rows) == summary["num_scenes"] == 2  # the smoke data's two test scenes
+    assert all(float(r["psnr"]) > 0 for r in rows)
+    mean = sum(float(r["psnr"]) for r in rows) / len(rows)
+    assert summary["metrics"]["psnr"] == pytest.approx(mean)
+
+
+def test_job_with_tasks_not_matching_gpus_fails_fast(job_env, tmp_path):
+    log = tmp_path / "mismatch.out"
+    env = {**job_env, "AESPLAT_SLURM_CPU": "0"}  # the GPU path: 2 GPU slots, 1 task
+    options = ["--gpus-per-node=2", "--ntasks-per-node=1", "--cpus-per-task=1"]
+    job_id = sbatch(env, "train.sbatch", options, ["-c", "conf/smoke.yaml"], log)
+    info = wait_for_end(env, job_id, log)
+    assert (info["JobState"], info["ExitCode"]) == ("FAILED", "2:0"), info
+    assert "2 GPUs per node but 1 tasks per node" in info["log"]
+    assert "(restart" not in info["log"], "it must stop before srun"
