@@ -42,6 +42,7 @@ def _lightning_cli():
     from lightning.pytorch.loggers import WandbLogger
 
     from aesplat.data import DataModule
+    from aesplat.threads import apply_thread_policy
     from aesplat.train import AESplatModule
     from aesplat.train.callbacks import Throughput
     from aesplat.train.run_dir import latest_checkpoint, wandb_mode, wandb_run_id
@@ -72,6 +73,10 @@ def _lightning_cli():
             )
             parser.add_lightning_class_args(Throughput, "throughput")
             parser.add_class_arguments(WandbConfig, "wandb")
+            parser.add_argument(
+                "--threads", type=int | None, default=None,
+                help="torch CPU threads (default: usable cores minus data-loader workers; see aesplat.threads)",
+            )  # fmt: skip
 
         def before_instantiate_classes(self) -> None:
             cfg = self.config[self.subcommand]
@@ -80,6 +85,7 @@ def _lightning_cli():
             for key in ("checkpoint", "last_checkpoint"):
                 if cfg[key].dirpath is None:
                     cfg[key].dirpath = str(Path(run_dir) / "checkpoints")
+            apply_thread_policy(cfg.data.num_workers, cfg.threads, processes=_local_processes(cfg.trainer))
 
         def instantiate_trainer(self, **kwargs):
             cfg = self.config_init[self.subcommand]
@@ -102,6 +108,14 @@ def _lightning_cli():
                 print(f"resuming from {found}" if found else "no checkpoint to resume from: starting fresh")
 
     return AESplatCLI, AESplatModule, DataModule
+
+
+def _local_processes(trainer) -> int:
+    """Training processes on this node that share its cores: the devices of a CPU run (DDP on the CPU)."""
+    devices = trainer.get("devices")
+    if trainer.get("accelerator") == "cpu" and isinstance(devices, int) and devices > 1:
+        return devices
+    return 1
 
 
 # Lightning warnings that are expected here and would only bury real ones: the module moves its own typed
