@@ -33,8 +33,8 @@ def _layered_scene() -> Gaussians:
 
 
 # 12 tiles of 64 pixels at chunk 3: 0 keeps every step at 3 (every chunk boundary is crossed); 768 lets the
-# step grow once fewer than 4 tiles are active (steps of 3, then 6, 12, ... mid-walk); the default takes
-# whole lists in one step.
+# step grow once fewer than 4 tiles are active (steps of 3, then 6, 12, ... mid-walk); 2^18 takes whole
+# lists in one step.
 @pytest.mark.parametrize("step_elements", [0, 768, 1 << 18])
 def test_step_sizes_match_reference_float64(step_elements):
     g = _layered_scene()

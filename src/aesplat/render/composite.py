@@ -320,7 +320,7 @@ def composite(
     chunk: int = 32,
     max_elements: int = 1 << 22,
     compiled: bool = False,
-    step_elements: int = 1 << 18,
+    step_elements: int = 1 << 16,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Composite the binned Gaussians into images.
 

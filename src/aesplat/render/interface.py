@@ -41,7 +41,7 @@ class RenderSettings:
     tile_size: int = 8
     chunk: int = 32
     max_elements: int = 1 << 22
-    step_elements: int = 1 << 18
+    step_elements: int = 1 << 16
     near: float = 0.01
     far: float = 1e10
     eps2d: float = 0.3
