@@ -7,7 +7,8 @@
 fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
 and the data, the parser holds four sections: ``checkpoint`` (ModelCheckpoint: best by val/psnr),
-``last_checkpoint`` (ModelCheckpoint: last.ckpt every N steps), ``throughput`` and ``wandb``. Everything
+``last_checkpoint`` (ModelCheckpoint: last.ckpt every N steps), ``throughput`` and ``wandb``, plus ``threads``
+(torch CPU threads; default from ``aesplat.threads``: usable cores minus ``data.num_workers``). Everything
 a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml,
 test/. ``--ckpt_path last`` resumes from the newest of
 checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts fresh when there is none).
