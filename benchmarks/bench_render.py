@@ -109,6 +109,10 @@ def scaling_section(repeats: int, quick: bool, options: dict) -> None:
     for deg in [0, 2] if quick else [0, 1, 2, 3]:
         rows.append(("SH degree", SIZE, SIZE, deg, 1.0))
     rows.append(("3x larger", SIZE, SIZE, 4, 3.0))
+    # The CPU demo's scene (two 42^2 context views) into smaller and larger targets: the cost must not rise as
+    # the image shrinks (few tiles with long lists; see render/composite.py).
+    for img in [10, 42] if quick else [10, 21, 42, 84]:
+        rows.append(("demo image", 42, img, 2, 1.0))
     for case, ctx, img, deg, scale in rows:
         g, ext, intr = reference_workload(ctx, sh_degree=deg, scale_factor=scale)
         fwd = _median_time(_forward(g, ext, intr, img, **options), repeats)

@@ -12,6 +12,7 @@ import argparse
 import time
 
 from aesplat.data.synthetic import generate_dataset
+from aesplat.threads import apply_thread_policy
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -44,7 +45,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scenes-per-chunk", type=int, default=4, help="scenes per *.torch chunk (default 4)")
     p.add_argument("--specular", type=float, default=None, help="probability a scene declares `specular`")
     p.add_argument("--exposure", type=float, default=None, help="probability a scene declares `exposure`")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: aesplat.threads)")
     a = p.parse_args(argv)
+    apply_thread_policy(override=a.threads)  # the ray caster itself runs its small kernels on one thread
     probs = {k: v for k, v in (("specular", a.specular), ("exposure", a.exposure)) if v is not None}
     start = time.perf_counter()
     info = generate_dataset(

@@ -17,6 +17,7 @@ import json
 import sys
 
 from aesplat.data.shards import convert_dataset, verify_shards
+from aesplat.threads import apply_thread_policy
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -64,7 +65,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the training-sample draw (default 0)")
     p.add_argument("--dataset", default=None, help="name written into each sample's meta (default from SRC)")
     p.add_argument("--verify", action="store_true", help="only check OUT's shards against its manifest")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: aesplat.threads)")
     a = p.parse_args(argv)
+    apply_thread_policy(num_workers=a.workers if a.workers > 1 else 0, override=a.threads)
     if a.verify:
         bad = verify_shards(a.out)
         print("\n".join(f"checksum mismatch or missing: {b}" for b in bad) or f"all shards in {a.out} verified")

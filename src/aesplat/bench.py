@@ -48,6 +48,7 @@ from .export import drop_transparent, keep_most_opaque
 from .model import forward_batch
 from .predict import HelpFormatter
 from .render import render
+from .threads import ENV_OVERRIDE, apply_thread_policy
 from .train.metrics import psnr, ssim
 from .types import BatchedExample, BatchedViews, Gaussians
 
@@ -599,7 +600,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="also measure the torch backend with torch.compile (cold compiles take minutes)",
     )
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, ... (auto: cuda if available)")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help=f"torch CPU threads (default: the usable cores, or ${ENV_OVERRIDE})")  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -632,8 +634,7 @@ def main(argv: list[str] | None = None) -> int:
     from .render import get_backend
 
     args = build_parser().parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    apply_thread_policy(num_workers=0, override=args.threads)  # the scenes are read in this process
     device = resolve_device(args.device)
     try:
         loaded = load_checkpoint(args.ckpt, device)

@@ -7,7 +7,8 @@
 fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
 and the data, the parser holds four sections: ``checkpoint`` (ModelCheckpoint: best by val/psnr),
-``last_checkpoint`` (ModelCheckpoint: last.ckpt every N steps), ``throughput`` and ``wandb``. Everything
+``last_checkpoint`` (ModelCheckpoint: last.ckpt every N steps), ``throughput`` and ``wandb``, plus ``threads``
+(torch CPU threads; default from ``aesplat.threads``: usable cores minus ``data.num_workers``). Everything
 a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml,
 test/. ``--ckpt_path last`` resumes from the newest of
 checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts fresh when there is none).
@@ -46,6 +47,7 @@ def _lightning_cli():
     from lightning.pytorch.loggers import WandbLogger
 
     from aesplat.data import DataModule
+    from aesplat.threads import apply_thread_policy
     from aesplat.train import AESplatModule
     from aesplat.train.callbacks import Throughput
     from aesplat.train.requeue import RequeueAtStepBoundary
@@ -77,6 +79,10 @@ def _lightning_cli():
             )
             parser.add_lightning_class_args(Throughput, "throughput")
             parser.add_class_arguments(WandbConfig, "wandb")
+            parser.add_argument(
+                "--threads", type=int | None, default=None,
+                help="torch CPU threads (default: usable cores minus data-loader workers; see aesplat.threads)",
+            )  # fmt: skip
 
         def before_instantiate_classes(self) -> None:
             cfg = self.config[self.subcommand]
@@ -85,6 +91,7 @@ def _lightning_cli():
             for key in ("checkpoint", "last_checkpoint"):
                 if cfg[key].dirpath is None:
                     cfg[key].dirpath = str(Path(run_dir) / "checkpoints")
+            apply_thread_policy(cfg.data.num_workers, cfg.threads, processes=_local_processes(cfg.trainer))
 
         def instantiate_trainer(self, **kwargs):
             cfg = self.config_init[self.subcommand]
@@ -109,6 +116,14 @@ def _lightning_cli():
                 print(f"resuming from {found}" if found else "no checkpoint to resume from: starting fresh")
 
     return AESplatCLI, AESplatModule, DataModule
+
+
+def _local_processes(trainer) -> int:
+    """Training processes on this node that share its cores: the devices of a CPU run (DDP on the CPU)."""
+    devices = trainer.get("devices")
+    if trainer.get("accelerator") == "cpu" and isinstance(devices, int) and devices > 1:
+        return devices
+    return 1
 
 
 # Lightning warnings that are expected here and would only bury real ones: the module moves its own typed

@@ -40,6 +40,7 @@ from .geometry import (
     quat_to_matrix,
 )
 from .render import render
+from .threads import ENV_OVERRIDE, apply_thread_policy
 from .types import Gaussians
 
 PATCH = 14  # the encoder's patch size: the model's image side must be a multiple of it
@@ -388,6 +389,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="leave Gaussians below this opacity out of the PLY")  # fmt: skip
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, ... (auto: cuda if available)")
     parser.add_argument("--backend", default="auto", help="renderer backend: auto, torch or gsplat")
+    parser.add_argument("--threads", type=int, default=None,
+                        help=f"torch CPU threads (default: the usable cores, or ${ENV_OVERRIDE})")  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -405,6 +408,7 @@ def resolve_device(name: str) -> torch.device:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``aesplat predict`` (see ``--help``)."""
     args = build_parser().parse_args(argv)
+    apply_thread_policy(num_workers=0, override=args.threads)
     if len(args.images) < 2:
         raise SystemExit("aesplat predict: give at least two images of the same scene")
     device = resolve_device(args.device)

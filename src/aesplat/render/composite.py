@@ -6,6 +6,12 @@ the active set as soon as every one of its pixels has stopped (transmittance wou
 list is exhausted, so saturated tiles cost nothing more. The backward walks the same chunks back to front,
 recomputing alphas from the saved chunk-entry transmittance instead of keeping an autograd graph.
 
+The walk is sequential along the lists, so a few tiles with long lists (a small image, or the last tiles of
+a large one) would cost one Python-dispatched step per ``chunk`` Gaussians whatever the pixel count. When
+the active tiles are few, a step therefore takes more of each list: at least ``step_elements`` elements per
+step (``chunk`` times a power of two, within ``max_elements``). The result is the same up to float rounding
+(the carry between steps sits at other list positions); the cost then follows the elements, not the lists.
+
 Per pixel and Gaussian i (gsplat "classic"): sigma = 0.5 (a dx^2 + c dy^2) + b dx dy,
 alpha = min(0.99, o exp(-sigma)), skipped when alpha < 1/255 or sigma < 0; the walk stops before the
 Gaussian that would bring the transmittance to 1e-4 or below.
@@ -191,6 +197,7 @@ class _Composite(torch.autograd.Function):
         chunk: int,
         max_elements: int,
         compiled: bool,
+        step_elements: int,
     ):
         fwd, bwd = _chunk_functions(compiled)
         npix = bins.tile_size**2
@@ -202,11 +209,12 @@ class _Composite(torch.autograd.Function):
         tiles = tiles[: int((counts > 0).sum())]  # non-empty tiles, longest list first
         group = max(1, max_elements // (npix * chunk))
         mono = _pixel_monomials(bins.tile_size, packed.dtype, packed.device)
+        steps = _StepSizes(chunk, npix, step_elements, max_elements)
         saved = []
         for g0 in range(0, tiles.numel(), group):
             t = tiles[g0 : g0 + group]
-            saved.append((t, _forward_group(fwd, packed, bins, t, height, width, chunk, mono, feat, trans)))
-        ctx.bins, ctx.saved, ctx.hw, ctx.chunk, ctx.bwd = bins, saved, (height, width), chunk, bwd
+            saved.append((t, _forward_group(fwd, packed, bins, t, height, width, steps, mono, feat, trans)))
+        ctx.bins, ctx.saved, ctx.hw, ctx.bwd = bins, saved, (height, width), bwd
         ctx.save_for_backward(packed, trans)
         return feat, trans
 
@@ -219,33 +227,54 @@ class _Composite(torch.autograd.Function):
         mono = _pixel_monomials(ctx.bins.tile_size, packed.dtype, packed.device)
         h, w = ctx.hw
         for t, steps in ctx.saved:
-            _backward_group(
-                ctx.bwd, packed, ctx.bins, t, h, w, ctx.chunk, mono, steps, g_feat, g_trans, trans, grad
-            )
-        return grad, None, None, None, None, None, None
+            _backward_group(ctx.bwd, packed, ctx.bins, t, h, w, mono, steps, g_feat, g_trans, trans, grad)
+        return grad, None, None, None, None, None, None, None
 
 
-def _forward_group(fwd, packed, bins, tiles, height, width, chunk, mono, feat, trans):
-    """Composite one group of tiles into ``feat`` / ``trans``; returns per chunk (active ids, entry T)."""
+class _StepSizes:
+    """How many Gaussians of each list one compositing step takes: ``chunk``, doubled while the active tiles
+    are so few that a step would hold fewer than ``step_elements`` elements (and the block stays within
+    ``max_elements``), never more than the longest remaining list needs."""
+
+    def __init__(self, chunk: int, npix: int, step_elements: int, max_elements: int) -> None:
+        self.chunk, self.npix, self.step_elements, self.max_elements = chunk, npix, step_elements, max_elements
+
+    def __call__(self, tiles: int, remaining: int) -> int:
+        step = self.chunk
+        while (
+            tiles * self.npix * step < self.step_elements
+            and step < remaining
+            and tiles * self.npix * step * 2 <= self.max_elements
+        ):
+            step *= 2
+        return step
+
+
+def _forward_group(fwd, packed, bins, tiles, height, width, step_sizes, mono, feat, trans):
+    """Composite one group of tiles into ``feat`` / ``trans``; returns per step (active ids, entry T, list
+    position, step length)."""
     centre, off = _tile_geometry(tiles, bins, height, width, packed.dtype)
     starts, counts = bins.starts[tiles], bins.counts[tiles]
+    longest = counts.tolist()  # tiles come longest list first: the first active tile has the longest
     t_loc = packed.new_ones(tiles.numel(), mono.shape[1])
     live = (~off).to(packed.dtype)  # 0 once a pixel has stopped (and for pixels off the image)
     f_loc = packed.new_zeros(tiles.numel(), 4, mono.shape[1])
     act: slice | Tensor = slice(0, tiles.numel())
     steps = []
     k0 = 0
-    while _count(act) > 0:
-        p, _, valid = _gather_chunk(packed, bins, starts[act], counts[act], k0, chunk)
+    while (n_act := _count(act)) > 0:
+        first = 0 if isinstance(act, slice) else int(act[0])
+        step = step_sizes(n_act, longest[first] - k0)
+        p, _, valid = _gather_chunk(packed, bins, starts[act], counts[act], k0, step)
         live_act = live[act]
         t0 = t_loc[act] * live_act
-        steps.append((act, t0))
+        steps.append((act, t0, k0, step))
         f_add, t_new, stopped = fwd(p, centre[act], valid, t0, mono)
         f_loc[act] += f_add
         t_loc[act] = torch.where(live_act > 0, t_new, t_loc[act])
         live_act = torch.where(stopped, torch.zeros_like(live_act), live_act)
         live[act] = live_act
-        k0 += chunk
+        k0 += step
         act = _next_active(act, (counts[act] > k0) & (live_act > 0).any(-1), tiles.numel())
     feat[tiles], trans[tiles] = f_loc, t_loc
     return steps
@@ -265,7 +294,7 @@ def _next_active(act: slice | Tensor, alive: Tensor, n: int) -> slice | Tensor:
     return idx[alive]
 
 
-def _backward_group(bwd, packed, bins, tiles, height, width, chunk, mono, steps, g_feat, g_trans, trans, grad):
+def _backward_group(bwd, packed, bins, tiles, height, width, mono, steps, g_feat, g_trans, trans, grad):
     """Accumulate d loss / d packed rows for one group of tiles into ``grad`` [M, 10]."""
     centre, _ = _tile_geometry(tiles, bins, height, width, packed.dtype)
     starts, counts = bins.starts[tiles], bins.counts[tiles]
@@ -273,8 +302,8 @@ def _backward_group(bwd, packed, bins, tiles, height, width, chunk, mono, steps,
     # Through T_final, d L / d alpha_i gets -g_T T_final / (1 - alpha_i): it joins the suffix sum below.
     suffix = g_trans[tiles] * trans[tiles]  # [G, P]: sum over later j of w_j g_j, plus g_T T_final
     for k in range(len(steps) - 1, -1, -1):
-        act, t0 = steps[k]
-        p, gid, valid = _gather_chunk(packed, bins, starts[act], counts[act], k * chunk, chunk)
+        act, t0, k0, step = steps[k]
+        p, gid, valid = _gather_chunk(packed, bins, starts[act], counts[act], k0, step)
         rows, suffix[act] = bwd(p, centre[act], valid, t0, mono, gf_all[act], suffix[act])
         grad.index_add_(0, gid.reshape(-1), rows.reshape(-1, _PACK))
 
@@ -291,15 +320,17 @@ def composite(
     chunk: int = 32,
     max_elements: int = 1 << 22,
     compiled: bool = False,
+    step_elements: int = 1 << 16,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Composite the binned Gaussians into images.
 
     Returns colour [C, 3, H, W] (no background), depth numerator sum_i w_i z_i [C, 1, H, W] and final
     transmittance [C, 1, H, W] for the C = ``bins.num_cameras`` cameras. ``max_elements`` bounds the
-    [tiles, pixels, chunk] blocks (memory scales with it); ``chunk`` is the list step.
+    [tiles, pixels, chunk] blocks (memory scales with it); ``chunk`` is the list step, grown while fewer
+    than ``step_elements`` elements would make a step (0: always ``chunk``).
     """
     packed = torch.cat([means2d, conics, opacities[:, None], colors, depths[:, None]], dim=-1)
-    feat, trans = _Composite.apply(packed, bins, height, width, chunk, max_elements, compiled)
+    feat, trans = _Composite.apply(packed, bins, height, width, chunk, max_elements, compiled, step_elements)
     feat = _untile(feat, bins, height, width)
     return feat[:, :3], feat[:, 3:], _untile(trans[:, None], bins, height, width)
 

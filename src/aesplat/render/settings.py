@@ -17,6 +17,8 @@ class RenderSettings:
     chunk         Gaussians per compositing step of each tile list (torch backend)
     max_elements  bound on tiles x pixels x chunk per step: the torch backend's memory budget
                   (about 60 bytes per element in the backward)
+    step_elements torch backend: while fewer tiles are active than fill this many elements per step, the
+                  step takes more of each list (chunk x 2^k): few long lists cost few steps (0: never)
     near, far     depth cull planes (camera z)
     eps2d         low-pass added to the 2D covariance
     sh_tol        bands whose coefficients are all within this of zero are skipped
@@ -26,6 +28,7 @@ class RenderSettings:
     tile_size: int = 8
     chunk: int = 32
     max_elements: int = 1 << 22
+    step_elements: int = 1 << 16
     near: float = 0.01
     far: float = 1e10
     eps2d: float = 0.3

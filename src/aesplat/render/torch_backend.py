@@ -47,6 +47,7 @@ def render_torch(
     rgb, depth_sum, trans = composite(
         proj.means2d, proj.conics, proj.opacities, proj.colors, proj.depths, bins, height, width,
         chunk=settings.chunk, max_elements=settings.max_elements, compiled=settings.compile,
+        step_elements=settings.step_elements,
     )  # fmt: skip
     alpha = 1.0 - trans  # [C, 1, H, W]
     color = rgb + trans * background.repeat_interleave(v, dim=0)[:, :, None, None]
