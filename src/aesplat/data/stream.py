@@ -295,16 +295,19 @@ class TrainStream(_ShardStream):
         """Shuffled raw samples forever; ``None`` marks the end of each pass over the shards."""
         buffer: list[tuple[str, str, dict]] = []
         while True:
-            yielded = 0
+            yielded = read = 0
             for shard in rng.permutation(shards).tolist():
                 for key, raw in self._samples(shard):
                     buffer.append((shard, key, raw))
+                    read += 1
                     if len(buffer) >= self.shuffle_buffer:
                         yield buffer.pop(int(rng.integers(len(buffer))))
                         yielded += 1
             if yielded == 0 and not buffer:
                 raise RuntimeError(f"training shards {shards} hold no readable samples")
-            while len(buffer) > self.shuffle_buffer // 2:
+            # Keep at most half a buffer, and never more than half a pass: with fewer samples than the buffer
+            # holds, every pass still yields (else a tiny data set would look barren to the caller).
+            while len(buffer) > min(self.shuffle_buffer, read) // 2:
                 yield buffer.pop(int(rng.integers(len(buffer))))
             yield None
 
