@@ -2,8 +2,10 @@
 """Generate the synthetic data set in the pixelSplat chunk format (no download).
 
     python data_prep/synthetic.py --out DIR [--scenes N --frames F --height H --width W --seed S]
+    python data_prep/synthetic.py --out DIR --preset specular|diffuse ...   # the matched ablation sets
 
-Writes DIR/{train,test}/*.torch + index.json, DIR/evaluation_index.json and DIR/dataset.json.
+Writes DIR/{train,test}/*.torch + index.json, DIR/evaluation_index.json and DIR/dataset.json. Each scene of a
+chunk also holds `specular` [F, H, W], the magnitude of its specular term per pixel (zero for a diffuse scene).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from aesplat.data.synthetic import generate_dataset
+from aesplat.data.synthetic import PRESETS, generate_dataset
 from aesplat.threads import apply_thread_policy
 
 
@@ -46,6 +48,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--specular", type=float, default=None, help="probability a scene declares `specular`")
     p.add_argument("--exposure", type=float, default=None, help="probability a scene declares `exposure`")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: aesplat.threads)")
+    p.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default=None,
+        help="specular: every scene declares textures + specular and every surface is glossy; diffuse: the "
+        "same scenes (same seed -> same geometry, materials, cameras) with the highlights off",
+    )
     a = p.parse_args(argv)
     apply_thread_policy(override=a.threads)  # the ray caster itself runs its small kernels on one thread
     probs = {k: v for k, v in (("specular", a.specular), ("exposure", a.exposure)) if v is not None}
@@ -54,7 +63,7 @@ def main(argv: list[str] | None = None) -> None:
         a.out, scenes=a.scenes, frames=a.frames, height=a.height, width=a.width, seed=a.seed,
         test_scenes=a.test_scenes, scenes_per_chunk=a.scenes_per_chunk, effect_probs=probs,
         supersample=a.supersample, texture_scale=a.texture_scale,
-        turn_scale=a.turn_scale, progress=True,
+        turn_scale=a.turn_scale, preset=a.preset, progress=True,
     )  # fmt: skip
     n = info["train_scenes"] + info["test_scenes"]
     print(f"wrote {n} scenes ({info['train_scenes']} train, {info['test_scenes']} test) x {a.frames} frames "

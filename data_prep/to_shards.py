@@ -64,6 +64,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--jpeg-quality", type=int, default=95)
     p.add_argument("--seed", type=int, default=0, help="seed of the training-sample draw (default 0)")
     p.add_argument("--dataset", default=None, help="name written into each sample's meta (default from SRC)")
+    p.add_argument(
+        "--specular-threshold",
+        type=float,
+        default=0.05,
+        help="test targets of scenes with a `specular` magnitude get KEY.tgtI.spec.png, marking the pixels "
+        "whose specular term exceeds this (area-resampled like the image, then thresholded; default 0.05)",
+    )
     p.add_argument("--verify", action="store_true", help="only check OUT's shards against its manifest")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: aesplat.threads)")
     a = p.parse_args(argv)
@@ -78,7 +85,7 @@ def main(argv: list[str] | None = None) -> None:
         a.src, a.out, size=a.size, eval_index=a.eval_index, workers=a.workers, min_gap=a.min_gap,
         max_gap=a.max_gap, samples_per_scene=a.samples_per_scene, train_targets=a.train_targets,
         max_fov_deg=a.max_fov, min_baseline=a.min_baseline, expect_shape=a.expect_shape,
-        jpeg_quality=a.jpeg_quality, seed=a.seed, dataset=a.dataset,
+        jpeg_quality=a.jpeg_quality, seed=a.seed, dataset=a.dataset, specular_threshold=a.specular_threshold,
     )  # fmt: skip
     summary = {s: {k: v for k, v in e.items() if k != "shards"} for s, e in manifest["splits"].items()}
     print(json.dumps(summary, indent=1))

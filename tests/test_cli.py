@@ -56,6 +56,13 @@ def test_smoke_fit_then_test_writes_checkpoint_csv_and_json(shards, tmp_path):
     with open(out / "per_scene.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 and all(float(r["psnr"]) > 5 for r in rows)
+    # The test shards carry highlight masks (synthetic scenes): PSNR on the rest is always there, and equals
+    # the whole image's where a scene has no highlight pixel.
+    assert all(r["psnr_rest"] != "" and r["highlight_fraction"] != "" for r in rows)
+    for r in rows:
+        if float(r["highlight_fraction"]) == 0:
+            assert r["psnr_highlight"] == ""
+            assert float(r["psnr_rest"]) == pytest.approx(float(r["psnr"]), rel=1e-4)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["num_scenes"] == 2
     assert set(summary["buckets"]) >= {"small", "medium", "large"}

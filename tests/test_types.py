@@ -75,3 +75,15 @@ def test_uint8_images_convert_to_unit_floats():
     v = BatchedViews(**kw)
     ex = BatchedExample(context=v, target=v).float_images()
     assert ex.context.images.dtype == torch.float32 and torch.equal(ex.target.images, torch.ones(2, 2, 3, 8, 8))
+
+
+def test_example_highlight_mask_is_checked_and_moves_with_the_batch():
+    ctx, tgt = BatchedViews(**views()), BatchedViews(**views(v=3))
+    mask = torch.rand(2, 3, 1, 8, 8) > 0.5
+    ex = BatchedExample(context=ctx, target=tgt, highlight=mask)
+    assert torch.equal(ex.to(dtype=torch.float64).highlight, mask)  # a mask stays a mask
+    assert BatchedExample(context=ctx, target=tgt).highlight is None
+    with pytest.raises(ValueError, match="highlight must have shape \\(2, 3, 1, 8, 8\\)"):
+        BatchedExample(context=ctx, target=tgt, highlight=mask[:, :2])
+    with pytest.raises(TypeError, match="bool"):
+        BatchedExample(context=ctx, target=tgt, highlight=mask.float())

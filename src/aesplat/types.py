@@ -159,8 +159,10 @@ class BatchedViews(_TensorContainer):
 class BatchedExample:
     """One training / evaluation batch: context views, target views and per-scene metadata.
 
-    scene    list of B scene keys
-    overlap  [B] context overlap (NaN where unknown), gap [B] context frame gap
+    scene      list of B scene keys
+    overlap    [B] context overlap (NaN where unknown), gap [B] context frame gap
+    highlight  [B, Vt, 1, H, W] bool, the target pixels whose specular term exceeds the shards' threshold
+               (synthetic test data; all false for a diffuse scene), or None where the data carry no masks
     """
 
     context: BatchedViews
@@ -169,6 +171,7 @@ class BatchedExample:
     overlap: Tensor | None = None
     gap: Tensor | None = None
     dataset: list[str] = field(default_factory=list)
+    highlight: Tensor | None = None
 
     def __post_init__(self) -> None:
         b = self.context.images.shape[0]
@@ -179,6 +182,14 @@ class BatchedExample:
                 f"context and target image sizes differ: {self.context.image_shape} vs "
                 f"{self.target.image_shape}"
             )
+        if self.highlight is not None:
+            want = (*self.target.images.shape[:2], 1, *self.target.image_shape)
+            if not isinstance(self.highlight, Tensor) or self.highlight.dtype != torch.bool:
+                raise TypeError("BatchedExample.highlight must be a bool tensor [B, Vt, 1, H, W] or None")
+            if tuple(self.highlight.shape) != want:
+                raise ValueError(
+                    f"BatchedExample.highlight must have shape {want}, got {tuple(self.highlight.shape)}"
+                )
 
     def float_images(self) -> BatchedExample:
         """Convert uint8 images of both view sets to float32 in [0, 1] (do it after moving to the device)."""
@@ -195,4 +206,5 @@ class BatchedExample:
             return t.to(device=device, dtype=dtype if t.is_floating_point() else None)
 
         return replace(self, context=self.context.to(device, dtype), target=self.target.to(device, dtype),
-                       overlap=move(self.overlap), gap=move(self.gap))  # fmt: skip
+                       overlap=move(self.overlap), gap=move(self.gap),
+                       highlight=move(self.highlight))  # fmt: skip

@@ -250,3 +250,37 @@ def test_unreadable_chunk_is_counted(tmp_path, scene):
 def test_missing_source_is_a_clear_error(tmp_path):
     with pytest.raises(FileNotFoundError, match="train/ or test/"):
         convert_dataset(tmp_path, tmp_path / "out", progress=False)
+
+
+def test_test_samples_carry_highlight_masks(tmp_path, scene):
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().expand(8, 3, 3).numpy()
+    shiny, matte, old = (chunk_entry(name, images, c2w, k) for name in ("shiny", "matte", "old"))
+    magnitude = torch.zeros(8, H, W, dtype=torch.float16)
+    magnitude[3, 10:20, 20:30] = 0.5  # a highlight block in frame 3 (columns 12..22 of the centre crop)
+    shiny["specular"] = magnitude
+    matte["specular"] = torch.zeros(8, H, W, dtype=torch.float16)  # a diffuse scene: an empty mask
+    evaluation = {
+        name: {"context": [1, 6], "target": [2, 3, 5], "overlap": 0.5} for name in ("shiny", "matte", "old")
+    }
+    write_source(tmp_path / "src", [shiny], [shiny, matte, old], evaluation)
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=3, max_gap=6,
+                               specular_threshold=0.2, progress=False)  # fmt: skip
+
+    samples = dict(read_tar(next((tmp_path / "out" / "test").glob("*.tar"))))
+    masks = {}
+    for name in ("shiny", "matte"):
+        assert {f"tgt{i}.spec.png" for i in range(3)} <= set(samples[name])
+        masks[name] = [np.array(Image.open(io.BytesIO(samples[name][f"tgt{i}.spec.png"]))) for i in range(3)]
+    assert not any(n.endswith(".spec.png") for n in samples["old"])  # chunks without `specular` still convert
+    # By hand: the 48-pixel crop shrinks 3x; a pixel is marked where the block's mean over it exceeds 0.2:
+    # rows 3 and 6 hold 2/3 of a block row (mean 0.33), column 7 only 1/3 (0.17).
+    expect = np.zeros((16, 16), np.uint8)
+    expect[3:7, 4:7] = 255
+    assert np.array_equal(masks["shiny"][1], expect)  # target 1 is frame 3
+    assert not masks["shiny"][0].any() and not masks["shiny"][2].any()
+    assert not any(m.any() for m in masks["matte"])
+    assert manifest["splits"]["test"]["highlight_share"] == pytest.approx(12 / (6 * 16 * 16))
+    for _, raw in read_tar(next((tmp_path / "out" / "train").glob("*.tar"))):  # training samples: no masks
+        assert not any(n.endswith(".spec.png") for n in raw)

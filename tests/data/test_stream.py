@@ -268,3 +268,68 @@ def test_flip_augment_flips_some_training_samples_consistently(synthetic_shards)
                 assert torch.isclose(k[0, 2], 1 - orig_k[0, 2]) and torch.isclose(k[1, 2], orig_k[1, 2])
                 flipped += 1
     assert flipped > 0 and plain > 0
+
+
+def _masks(raw: dict, count: int) -> torch.Tensor:
+    """The sample's target masks as written by to_shards: bool [count, 1, S, S]."""
+    from PIL import Image
+
+    return torch.stack([torch.from_numpy(np.array(Image.open(io.BytesIO(raw[f"tgt{i}.spec.png"]))) > 0)[None]
+                        for i in range(count)])  # fmt: skip
+
+
+def test_eval_batches_carry_the_highlight_masks(synthetic_shards):
+    raw = {json.loads(r["meta.json"])["scene"]: r for s in sorted((synthetic_shards / "test").glob("*.tar"))
+           for _, r in read_tar(s)}  # fmt: skip
+    lit = 0
+    for batch in module(synthetic_shards, eval_batch_size=1).test_dataloader():
+        vt = batch.target.num_views
+        assert batch.highlight.dtype == torch.bool and batch.highlight.shape == (1, vt, 1, SIZE, SIZE)
+        assert torch.equal(batch.highlight[0], _masks(raw[batch.scene[0]], vt))
+        lit += int(batch.highlight.any())
+    assert lit > 0  # the fixture's scenes declare `specular` at random: some masks are not empty
+    # Another image size: the masks are resized by nearest neighbour, like a mask should be.
+    big = next(iter(module(synthetic_shards, image_size=2 * SIZE).test_dataloader()))
+    small = next(iter(module(synthetic_shards).test_dataloader()))
+    assert torch.equal(big.highlight, small.highlight.repeat_interleave(2, -1).repeat_interleave(2, -2))
+
+
+def test_highlight_is_none_without_masks_and_mixed_batches_are_an_error(synthetic_shards, tmp_path):
+    from aesplat.data.stream import StreamConfig, collate, decode_sample
+
+    key, raw = next(read_tar(sorted((synthetic_shards / "test").glob("*.tar"))[0]))
+    cfg = StreamConfig(image_size=SIZE, batch_size=2, num_target_views=None)
+    with_mask = decode_sample(key, raw, cfg, None)
+    bare = decode_sample(key, {k: v for k, v in raw.items() if not k.endswith(".spec.png")}, cfg, None)
+    assert bare["highlight"] is None and collate([bare, bare], cfg).highlight is None
+    assert collate([with_mask, with_mask], cfg).highlight.shape[:2] == (2, 3)
+    with pytest.raises(ValueError, match="highlight masks"):
+        collate([with_mask, bare], cfg)
+
+
+def test_a_flipped_sample_flips_its_masks(synthetic_shards):
+    from aesplat.data.stream import StreamConfig, decode_sample
+
+    key, raw = next(read_tar(sorted((synthetic_shards / "test").glob("*.tar"))[0]))
+    raw = dict(raw)
+    raw["tgt0.spec.png"] = raw["tgt1.spec.png"] = raw["tgt2.spec.png"] = _png_left_half()
+    flips = StreamConfig(image_size=SIZE, batch_size=1, num_target_views=3, flip_augment=True)
+    seen = set()
+    for seed in range(8):
+        sample = decode_sample(key, raw, flips, np.random.default_rng(seed))
+        plain = decode_sample(key, raw, StreamConfig(image_size=SIZE, batch_size=1, num_target_views=3), None)
+        flipped = not torch.equal(sample["images"], plain["images"])
+        assert torch.equal(sample["images"], plain["images"].flip(-1) if flipped else plain["images"])
+        assert torch.equal(sample["highlight"], plain["highlight"].flip(-1) if flipped else plain["highlight"])
+        seen.add(flipped)
+    assert seen == {True, False}
+
+
+def _png_left_half() -> bytes:
+    from PIL import Image
+
+    mask = np.zeros((SIZE, SIZE), np.uint8)
+    mask[:, : SIZE // 2] = 255
+    buf = io.BytesIO()
+    Image.fromarray(mask).save(buf, format="PNG")
+    return buf.getvalue()

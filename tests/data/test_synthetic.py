@@ -184,3 +184,55 @@ def test_generate_dataset_writes_chunk_format(tmp_path):
 def test_generate_rejects_too_few_frames(tmp_path):
     with pytest.raises(ValueError, match="frames"):
         generate_dataset(tmp_path, scenes=1, frames=3)
+
+
+def test_rendered_specular_magnitude_is_the_highlight_term():
+    scene = sample_scene(5, frames=6, height=H, width=W, effects=("textures", "specular"), glossy_fraction=1.0)
+    out = render_scene(scene, H, W, frames=[0, 5])
+    origins = scene.extrinsics[[0, 5], None, None, :3, 3].expand_as(out.points).reshape(-1, 3)
+    term = synthetic.specular(scene, out.points.reshape(-1, 3), out.normals.reshape(-1, 3),
+                              out.surface.reshape(-1), origins)  # fmt: skip
+    assert torch.allclose(out.specular.reshape(-1), term.amax(-1), atol=1e-6)
+    assert (out.specular > 0.05).any()
+    diffuse = render_scene(replace(scene, effects=frozenset({"textures"})), H, W, frames=[0, 5])
+    assert torch.equal(diffuse.specular, torch.zeros(2, H, W))
+    # The image is the diffuse image plus the term (before clamping), wherever it does not saturate.
+    unclipped = (out.images < 1).all(-1)
+    added = (out.images - diffuse.images).amax(-1)
+    assert torch.allclose(added[unclipped], out.specular[unclipped], atol=1e-5)
+    # Supersampled: the magnitude is averaged over the sub-pixel rays like the colour.
+    fine = render_scene(scene, 2 * H, 2 * W, frames=[0])
+    coarse = render_scene(scene, H, W, frames=[0], supersample=2)
+    assert torch.allclose(coarse.specular[0], fine.specular[0].reshape(H, 2, W, 2).mean((1, 3)), atol=1e-5)
+
+
+def test_presets_are_the_same_scenes_with_and_without_highlights(tmp_path):
+    sets = {}
+    for preset in ("specular", "diffuse"):
+        info = generate_dataset(tmp_path / preset, scenes=2, test_scenes=2, frames=6, height=16, width=24,
+                                seed=4, preset=preset)  # fmt: skip
+        assert info["preset"] == preset and info["glossy_fraction"] == 1.0
+        sets[preset] = [s for split in ("train", "test") for c in list_chunks(tmp_path / preset / split)
+                        for s in load_chunk(c)]  # fmt: skip
+    for shiny, matte in zip(sets["specular"], sets["diffuse"]):
+        assert shiny["effects"] == ["specular", "textures"] and matte["effects"] == ["textures"]
+        assert torch.equal(shiny["cameras"], matte["cameras"]) and torch.equal(shiny["depths"], matte["depths"])
+        assert shiny["specular"].dtype == torch.float16 and shiny["specular"].shape == (6, 16, 24)
+        assert torch.equal(matte["specular"], torch.zeros(6, 16, 24, dtype=torch.float16))
+    assert any((s["specular"] > 0.05).any() for s in sets["specular"])
+    for name in ("evaluation_index.json",):
+        assert (tmp_path / "specular" / name).read_text() == (tmp_path / "diffuse" / name).read_text()
+    with pytest.raises(ValueError, match="preset"):
+        generate_dataset(tmp_path / "x", scenes=1, frames=6, preset="shiny")
+    with pytest.raises(ValueError, match="fixes the effects"):
+        generate_dataset(tmp_path / "x", scenes=1, frames=6, preset="diffuse", effect_probs={"specular": 1.0})
+
+
+def test_glossy_fraction_changes_only_which_surfaces_shine():
+    a = sample_scene(9, frames=4, height=8, width=8, effects=("specular",), glossy_fraction=0.6)
+    b = sample_scene(9, frames=4, height=8, width=8, effects=("specular",), glossy_fraction=1.0)
+    assert torch.equal(a.extrinsics, b.extrinsics) and torch.equal(a.box_lo, b.box_lo)
+    assert torch.equal(a.materials.color_a, b.materials.color_a)
+    assert (b.materials.ks > 0).all() and (a.materials.ks == 0).any()
+    glossy = a.materials.ks > 0
+    assert torch.equal(a.materials.ks[glossy], b.materials.ks[glossy])

@@ -13,6 +13,8 @@ from aesplat.train.metrics import (
     COPY_BEST,
     COPY_MEAN,
     context_copy_psnr,
+    highlight_psnr,
+    masked_psnr,
     overlap_bucket,
     psnr,
     relative_pose_errors,
@@ -26,6 +28,51 @@ def test_psnr_is_per_image():
     pred[0] += 0.1  # MSE 0.01 -> 20 dB
     pred[1] += 0.01  # MSE 1e-4 -> 40 dB
     assert psnr(pred, target).tolist() == pytest.approx([20.0, 40.0], rel=1e-4)
+
+
+def test_masked_psnr_by_hand():
+    target = torch.zeros(3, 3, 4, 4)
+    pred = target.clone()
+    mask = torch.zeros(3, 1, 4, 4, dtype=torch.bool)
+    mask[0, :, 0, :2] = True  # image 0: two highlight pixels, off by 0.1 and 0.3 in every channel
+    pred[0, :, 0, 0], pred[0, :, 0, 1] = 0.1, 0.3
+    pred[0, :, 3, 3] = 0.5  # outside the mask: ignored by the highlight PSNR
+    mask[1] = True  # image 1: every pixel; off by 0.1 -> 20 dB
+    pred[1] += 0.1
+    pred[2, 0] = 1.5  # image 2: empty mask; the prediction is clamped to 1 like `psnr`
+    got = masked_psnr(pred, target, mask)
+    expect_0 = -10 * math.log10((0.1**2 + 0.3**2) / 2)  # mean over the 2 pixels x 3 channels
+    assert got[0].item() == pytest.approx(expect_0, rel=1e-5)
+    assert got[1].item() == pytest.approx(20.0, rel=1e-5)
+    assert math.isnan(got[2].item())  # no such pixels: NaN, not a number made up
+    assert masked_psnr(pred[1:2], target[1:2], mask[1:2]).item() == pytest.approx(
+        psnr(pred[1:2], target[1:2]).item()
+    )
+
+    split = highlight_psnr(pred, target, mask)
+    assert split["psnr_highlight"][0].item() == pytest.approx(expect_0, rel=1e-5)
+    rest_0 = -10 * math.log10(0.5**2 / 14)  # the 14 other pixels: one off by 0.5
+    assert split["psnr_rest"][0].item() == pytest.approx(rest_0, rel=1e-5)
+    assert math.isnan(split["psnr_rest"][1].item())  # everything is highlight: no rest
+    assert split["psnr_rest"][2].item() == pytest.approx(
+        -10 * math.log10(1 / 3), rel=1e-5
+    )  # 1/3 of values off by 1
+    assert split["highlight_fraction"].tolist() == pytest.approx([2 / 16, 1.0, 0.0])
+
+
+def test_empty_highlight_metrics_are_blank_in_the_csv_and_skipped_in_the_summary(tmp_path):
+    rows = _rows()
+    for i, row in enumerate(rows):
+        row.update(
+            psnr_highlight=float("nan") if i < 2 else 10.0 * i, psnr_rest=30.0, highlight_fraction=0.1 * i
+        )
+    summary = write_results(rows, tmp_path)
+    assert summary["metrics"]["psnr_highlight"] == pytest.approx(30.0)  # mean of 20, 30, 40
+    assert summary["counts"]["psnr_highlight"] == 3 and summary["counts"]["psnr_rest"] == 5
+    with open(tmp_path / "per_scene.csv") as f:
+        table = list(csv.DictReader(f))
+    assert [r["psnr_highlight"] for r in table] == ["", "", "20.0", "30.0", "40.0"]
+    assert summarize(_rows())["metrics"]["psnr_highlight"] is None  # data without masks: null
 
 
 def test_ssim_identity_and_noise():

@@ -10,6 +10,10 @@ Sample layout (V = context views first, then targets)::
     KEY.extrinsics.npy   float32 [V, 4, 4] camera-to-world in the source scene's world frame
     KEY.intrinsics.npy   float32 [V, 3, 3] normalised, for the cropped image
     KEY.meta.json        {"scene", "dataset", "context", "target", "gap", "overlap"}
+    KEY.tgt0.spec.png …  test samples of scenes whose chunk entry carries ``specular`` (the synthetic set) only:
+                         8-bit mask per target, 255 where the specular term exceeds ``specular_threshold``.
+                         The magnitude is cropped like the image, area-resampled (box filter) to the output
+                         size, then thresholded: a pixel is a highlight when the mean term over it exceeds it.
 """
 
 from __future__ import annotations
@@ -43,7 +47,9 @@ class ConvertConfig:
     samples_per_scene: training samples per scene; train_targets: targets per training sample (drawn strictly
     between the context frames); max_fov_deg: skip scenes with a wider horizontal or vertical FOV;
     min_baseline: skip scenes whose camera centres span less (and training pairs closer) than this;
-    expect_shape: (H, W) every source image must have, or None to accept any consistent shape.
+    expect_shape: (H, W) every source image must have, or None to accept any consistent shape;
+    specular_threshold: a test target's pixel is a highlight (``tgtI.spec.png``) where the scene's specular
+    term exceeds this.
     """
 
     size: int = 256
@@ -57,6 +63,7 @@ class ConvertConfig:
     jpeg_quality: int = 95
     seed: int = 0
     dataset: str = "unknown"
+    specular_threshold: float = 0.05
 
     def __post_init__(self) -> None:
         if self.size < 1:
@@ -65,6 +72,8 @@ class ConvertConfig:
             raise ValueError(f"need 2 <= min_gap <= max_gap, got {self.min_gap}, {self.max_gap}")
         if self.samples_per_scene < 1 or self.train_targets < 1:
             raise ValueError("samples_per_scene and train_targets must be at least 1")
+        if not self.specular_threshold >= 0.0:
+            raise ValueError(f"specular_threshold must be >= 0, got {self.specular_threshold}")
 
 
 def safe_key(text: str) -> str:
@@ -75,6 +84,13 @@ def safe_key(text: str) -> str:
 # ----------------------------------------------------------------------------------------------- images
 
 
+def square_crop_box(width: int, height: int) -> tuple[int, int, int, int]:
+    """The centred square of the shorter side (integer offsets), as PIL's (left, top, right, bottom)."""
+    side = min(width, height)
+    left, top = (width - side) // 2, (height - side) // 2
+    return left, top, left + side, top + side
+
+
 def crop_resize(jpeg: bytes, size: int, intrinsics: np.ndarray) -> tuple[Image.Image, np.ndarray]:
     """Centre-crop a JPEG to a square of its shorter side (integer offset), then resize to ``size``.
 
@@ -83,13 +99,27 @@ def crop_resize(jpeg: bytes, size: int, intrinsics: np.ndarray) -> tuple[Image.I
     """
     image = Image.open(io.BytesIO(jpeg)).convert("RGB")
     w, h = image.size
-    side = min(w, h)
-    left, top = (w - side) // 2, (h - side) // 2
-    image = image.crop((left, top, left + side, top + side)).resize((size, size), Image.Resampling.BICUBIC)
+    left, top, right, bottom = square_crop_box(w, h)
+    side = right - left
+    image = image.crop((left, top, right, bottom)).resize((size, size), Image.Resampling.BICUBIC)
     k = intrinsics.astype(np.float64).copy()
     k[0, 0], k[0, 2] = k[0, 0] * w / side, (k[0, 2] * w - left) / side
     k[1, 1], k[1, 2] = k[1, 1] * h / side, (k[1, 2] * h - top) / side
     return image, k
+
+
+def highlight_mask(specular: np.ndarray, size: int, threshold: float) -> np.ndarray:
+    """Specular magnitude [H, W] of a full frame -> bool mask [size, size] of the output image's pixels whose
+    mean magnitude (area resampling of the same centre crop as the image) exceeds ``threshold``."""
+    magnitude = Image.fromarray(np.asarray(specular, dtype=np.float32), mode="F")
+    cropped = magnitude.crop(square_crop_box(*magnitude.size))
+    return np.asarray(cropped.resize((size, size), Image.Resampling.BOX)) > threshold
+
+
+def _png(mask: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(mask.astype(np.uint8) * 255, mode="L").save(buf, format="PNG")
+    return buf.getvalue()
 
 
 def _encode(image: Image.Image, quality: int) -> bytes:
@@ -165,8 +195,9 @@ def training_views(
 
 
 def make_sample(scene: dict[str, Any], context: list[int], target: list[int], overlap: float | None,
-                cfg: ConvertConfig) -> dict[str, bytes]:  # fmt: skip
-    """One shard sample (extension -> bytes) from a source scene and its frame ids."""
+                cfg: ConvertConfig, highlights: bool = False) -> dict[str, bytes]:  # fmt: skip
+    """One shard sample (extension -> bytes) from a source scene and its frame ids. ``highlights``: also write
+    each target's highlight mask (``tgtI.spec.png``) if the scene carries its specular magnitude."""
     c2w, k = row_to_cameras(scene["cameras"])
     frames = list(context) + list(target)
     names = [f"ctx{i}.jpg" for i in range(len(context))] + [f"tgt{i}.jpg" for i in range(len(target))]
@@ -184,6 +215,12 @@ def make_sample(scene: dict[str, Any], context: list[int], target: list[int], ov
         "gap": int(context[-1] - context[0]),
         "overlap": None if overlap is None or not math.isfinite(overlap) else float(overlap),
     }
+    if highlights and scene.get("specular") is not None:
+        magnitude = np.asarray(scene["specular"], dtype=np.float32)  # [F, H, W] (stored as float16)
+        if magnitude.shape[0] != len(scene["images"]):
+            raise ValueError(f"specular holds {magnitude.shape[0]} frames, the scene {len(scene['images'])}")
+        for i, f in enumerate(target):
+            sample[f"tgt{i}.spec.png"] = _png(highlight_mask(magnitude[f], cfg.size, cfg.specular_threshold))
     sample["extrinsics.npy"] = _npy(c2w[frames].astype(np.float32))
     sample["intrinsics.npy"] = _npy(np.stack(intrinsics).astype(np.float32))
     sample["meta.json"] = json.dumps(meta).encode()
@@ -262,13 +299,14 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
             skips[reason] += 1
             continue
         try:
-            made = [(name, make_sample(scene, ctx, tgt, ov, job.cfg))
+            made = [(name, make_sample(scene, ctx, tgt, ov, job.cfg, highlights=job.split == "test"))
                     for name, ctx, tgt, ov in _scene_samples(scene, key, job, skips)]  # fmt: skip
         except Exception:  # noqa: BLE001 - a broken frame skips its scene, never the run
             skips["corrupt_image"] += 1
             continue
         samples.extend(made)
         used_keys.append(key)
+    highlight, masked = _highlight_pixels(samples)
     tmp = shard.with_suffix(".tar.tmp")
     write_tar(tmp, samples)
     os.replace(tmp, shard)
@@ -282,11 +320,25 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
         "skips": dict(sorted((k, v) for k, v in skips.items() if v)),
         "sha256": sha256(shard),
         "bytes": shard.stat().st_size,
+        "highlight_pixels": highlight,
+        "masked_target_pixels": masked,
         "config": asdict(job.cfg),
         "evaluation_index_sha256": _index_digest(job.eval_index),
     }
     shard.with_suffix(".json").write_text(json.dumps(record, indent=1))
     return record
+
+
+def _highlight_pixels(samples: list[tuple[str, dict[str, bytes]]]) -> tuple[int, int]:
+    """(highlight pixels, pixels of targets with a mask) over the samples' ``tgtI.spec.png`` masks."""
+    highlight = total = 0
+    for _, sample in samples:
+        for ext, data in sample.items():
+            if ext.endswith(".spec.png"):
+                with Image.open(io.BytesIO(data)) as im:
+                    mask = np.asarray(im) > 0
+                highlight, total = highlight + int(mask.sum()), total + mask.size
+    return highlight, total
 
 
 def _index_digest(index: dict[str, Any] | None) -> str | None:
@@ -326,6 +378,7 @@ def convert_dataset(
     jpeg_quality: int = 95,
     seed: int = 0,
     dataset: str | None = None,
+    specular_threshold: float = 0.05,
     progress: bool = True,
 ) -> dict[str, Any]:
     """Convert ``src/{train,test}`` chunk folders into ``out/{train,test}/*.tar`` and ``out/manifest.json``.
@@ -333,6 +386,8 @@ def convert_dataset(
     eval_index: the evaluation index JSON for the test split (default ``src/evaluation_index.json`` if it
     exists; without one the test split is sampled like training, deterministically, one sample per scene).
     min_gap / max_gap default to ``src/dataset.json``'s ``gap_range`` if present, else the paper's 25 / 90.
+    Test samples of scenes that carry their specular magnitude get highlight masks (``specular_threshold``);
+    the manifest's test entry then states their ``highlight_share`` of target pixels.
     Already completed shards (sidecar checksum matches) are kept: an interrupted run resumes.
     Returns the manifest.
     """
@@ -354,6 +409,7 @@ def convert_dataset(
         jpeg_quality=jpeg_quality,
         seed=seed,
         dataset=dataset or info.get("dataset", src.name),
+        specular_threshold=specular_threshold,
     )
     if eval_index is None and (src / "evaluation_index.json").exists():
         eval_index = src / "evaluation_index.json"
@@ -411,6 +467,9 @@ def convert_dataset(
                 {k: r[k] for k in ("shard", "chunk", "samples", "scenes", "sha256", "bytes")} for r in recs
             ],
         }
+        masked = sum(r.get("masked_target_pixels", 0) for r in recs)
+        if masked:  # share of target pixels marked as highlights (tgtI.spec.png), at the output size
+            entry["highlight_share"] = sum(r.get("highlight_pixels", 0) for r in recs) / masked
         if split == "test" and index is not None:
             wanted = {k for k, v in index.items() if v is not None}
             found = {k for r in recs for k in r["scene_keys"]}

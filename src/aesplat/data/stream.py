@@ -96,7 +96,9 @@ class StreamConfig:
 
 def decode_sample(key: str, raw: dict[str, bytes], cfg: StreamConfig, rng: np.random.Generator | None) -> dict:
     """Raw sample -> tensors. ``rng`` picks the targets (a sorted random subset) and the flip; None means
-    evaluation: every target (or the first ``num_target_views``), no flip. ``ValueError`` on a bad sample."""
+    evaluation: every target (or the first ``num_target_views``), no flip. ``ValueError`` on a bad sample.
+    ``highlight`` is the picked targets' masks bool [Vt, 1, H, W] when the sample has one for each of them
+    (``tgtI.spec.png``), else None; resized by nearest neighbour and flipped with the images."""
     meta = json.loads(raw["meta.json"])
     ctx_names = sorted(
         (n for n in raw if n.startswith("ctx") and n.endswith(".jpg")), key=lambda n: int(n[3:-4])
@@ -136,12 +138,14 @@ def decode_sample(key: str, raw: dict[str, bytes], cfg: StreamConfig, rng: np.ra
                                 align_corners=False)[0].round().clamp(0, 255).to(torch.uint8)  # fmt: skip
         images.append(img)
     images_t = torch.stack(images)  # [V, 3, H, W]
+    highlight = _highlight(raw, [tgt_names[i] for i in picked], cfg.image_size)
     extrinsics, intrinsics = extrinsics[views], intrinsics[views]
     frames = torch.tensor(list(meta["context"]) + [meta["target"][i] for i in picked], dtype=torch.int64)
     if not (torch.isfinite(extrinsics).all() and torch.isfinite(intrinsics).all()):
         raise ValueError("non-finite cameras")
     if rng is not None and cfg.flip_augment and rng.uniform() < 0.5:
         images_t, extrinsics, intrinsics = flip_views(images_t, extrinsics, intrinsics)
+        highlight = None if highlight is None else highlight.flip(-1)
     overlap = meta.get("overlap")
     return {
         "key": key,
@@ -153,7 +157,26 @@ def decode_sample(key: str, raw: dict[str, bytes], cfg: StreamConfig, rng: np.ra
         "dataset": str(meta.get("dataset", "")),
         "gap": int(meta["gap"]),
         "overlap": float("nan") if overlap is None else float(overlap),
+        "highlight": highlight,
     }
+
+
+def _highlight(raw: dict[str, bytes], targets: list[str], size: int) -> Tensor | None:
+    """Highlight masks of the named target images (``tgtI.jpg`` -> ``tgtI.spec.png``): bool [Vt, 1, S, S], or
+    None unless every one of them has a mask."""
+    names = [name[: -len(".jpg")] + ".spec.png" for name in targets]
+    if not names or not all(n in raw for n in names):
+        return None
+    masks = []
+    for name in names:
+        with Image.open(io.BytesIO(raw[name])) as pil:
+            mask = torch.from_numpy(np.array(pil.convert("L")) > 127)[None]  # [1, H, W]
+        if mask.shape[-1] != mask.shape[-2]:
+            raise ValueError(f"{name} is {tuple(mask.shape[1:])}, shard masks must be square")
+        if mask.shape[-1] != size:  # nearest keeps it a mask; the image's resize is an antialiased bilinear
+            mask = F.interpolate(mask[None].float(), size=(size, size), mode="nearest-exact")[0] > 0.5
+        masks.append(mask)
+    return torch.stack(masks)
 
 
 def collate(samples: list[dict], cfg: StreamConfig) -> BatchedExample:
@@ -178,6 +201,12 @@ def collate(samples: list[dict], cfg: StreamConfig) -> BatchedExample:
             f"samples of one batch have different numbers of target views {counts} (scenes "
             f"{[s['scene'] for s in samples]}): set eval_num_target_views or eval_batch_size=1"
         )
+    with_masks = [s.get("highlight") is not None for s in samples]
+    if any(with_masks) and not all(with_masks):
+        raise ValueError(
+            f"only some samples of one batch have highlight masks (scenes {[s['scene'] for s in samples]}): "
+            "evaluate shards with and without masks separately, or set eval_batch_size=1"
+        )
     return BatchedExample(
         context=views(slice(0, nc)),
         target=views(slice(nc, None)),
@@ -185,6 +214,7 @@ def collate(samples: list[dict], cfg: StreamConfig) -> BatchedExample:
         overlap=torch.tensor([s["overlap"] for s in samples], dtype=torch.float32),
         gap=torch.tensor([s["gap"] for s in samples], dtype=torch.int64),
         dataset=[s["dataset"] for s in samples],
+        highlight=torch.stack([s["highlight"] for s in samples]) if all(with_masks) else None,
     )
 
 
@@ -265,16 +295,19 @@ class TrainStream(_ShardStream):
         """Shuffled raw samples forever; ``None`` marks the end of each pass over the shards."""
         buffer: list[tuple[str, str, dict]] = []
         while True:
-            yielded = 0
+            yielded = read = 0
             for shard in rng.permutation(shards).tolist():
                 for key, raw in self._samples(shard):
                     buffer.append((shard, key, raw))
+                    read += 1
                     if len(buffer) >= self.shuffle_buffer:
                         yield buffer.pop(int(rng.integers(len(buffer))))
                         yielded += 1
             if yielded == 0 and not buffer:
                 raise RuntimeError(f"training shards {shards} hold no readable samples")
-            while len(buffer) > self.shuffle_buffer // 2:
+            # Keep at most half a buffer, and never more than half a pass: with fewer samples than the buffer
+            # holds, every pass still yields (else a tiny data set would look barren to the caller).
+            while len(buffer) > min(self.shuffle_buffer, read) // 2:
                 yield buffer.pop(int(rng.integers(len(buffer))))
             yield None
 

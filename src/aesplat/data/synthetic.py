@@ -8,6 +8,10 @@ Each scene declares its effects and only those are computed:
 - ``specular``  Blinn-Phong highlights from a point light (they move with the view);
 - ``exposure``  a smooth per-frame gain.
 
+Every rendered frame also carries the magnitude of its specular term (zero for a scene without ``specular``), so
+evaluation can score highlight pixels apart from the rest. ``PRESETS`` name matched data sets: ``specular``
+(every scene and surface glossy) and ``diffuse`` (the same scenes, bit for bit, with the highlights off).
+
 The diffuse radiance of a surface point is its albedo (no Lambert term), so a diffuse scene's pixel equals the
 texture lookup at the point it sees. World axes: x right, y down, z forward (the camera's OpenCV axes at rest).
 Depth is z-depth: rays are cast along d = R @ (x, y, 1), so the ray parameter is the depth itself.
@@ -30,6 +34,13 @@ from .chunks import cameras_to_row, encode_jpeg, write_chunk, write_index
 
 EFFECTS = ("textures", "specular", "exposure")
 DEFAULT_EFFECT_PROBS = {"textures": 1.0, "specular": 0.5, "exposure": 0.3}
+DEFAULT_GLOSSY_FRACTION = 0.6  # share of surfaces with a highlight in a scene that declares ``specular``
+# Matched data sets for the appearance ablation: every scene declares the same effects (no random draw), every
+# surface is glossy. ``diffuse`` differs from ``specular`` only in not computing the highlight.
+PRESETS = {
+    "specular": {"effects": ("textures", "specular"), "glossy_fraction": 1.0},
+    "diffuse": {"effects": ("textures",), "glossy_fraction": 1.0},
+}
 NUM_WAVES = 4  # sinusoids per texture
 T_MIN = 1e-4  # rays start this far from the camera
 
@@ -98,13 +109,16 @@ class Scene:
 @dataclass(frozen=True)
 class RenderedFrames:
     """Ray-cast frames: images [F, H, W, 3] float in [0, 1], depth [F, H, W] z-depth, surface [F, H, W] ids,
-    points [F, H, W, 3] world hit points, normals [F, H, W, 3] unit normals facing the camera."""
+    points [F, H, W, 3] world hit points, normals [F, H, W, 3] unit normals facing the camera, specular
+    [F, H, W] the magnitude of the specular term added to each pixel (its largest channel, times the exposure
+    gain, averaged like the colour under supersampling, before clamping; zero without ``specular``)."""
 
     images: Tensor
     depth: Tensor
     surface: Tensor
     points: Tensor
     normals: Tensor
+    specular: Tensor
 
 
 # ----------------------------------------------------------------------------------------------- shading
@@ -207,11 +221,13 @@ def _trace(scene: Scene, extrinsics: Tensor, height: int, width: int) -> tuple[T
 
 
 def _shade(scene: Scene, surface: Tensor, normal: Tensor, points: Tensor, origins: Tensor) -> Tensor:
-    """Radiance [N, 3] of hit points: the albedo, plus a highlight only if the scene declares ``specular``."""
+    """Radiance [N, 4] of hit points: RGB = the albedo, plus a highlight only if the scene declares
+    ``specular``; channel 3 = the highlight's largest channel (0 without ``specular``)."""
     color = albedo(scene.materials, points, surface, textured="textures" in scene.effects)
-    if "specular" in scene.effects:
-        color = color + specular(scene, points, normal, surface, origins)
-    return color
+    if "specular" not in scene.effects:
+        return torch.cat([color, torch.zeros_like(color[:, :1])], dim=-1)
+    highlight = specular(scene, points, normal, surface, origins)
+    return torch.cat([color + highlight, highlight.amax(-1, keepdim=True)], dim=-1)
 
 
 def render_scene(
@@ -229,16 +245,18 @@ def render_scene(
     f, s = len(idx), supersample
     t, surface, normal, points, origins = _trace(scene, extr, height, width)
     if s == 1:
-        color = _shade(scene, surface, normal, points, origins).reshape(f, height, width, 3)
+        shaded = _shade(scene, surface, normal, points, origins).reshape(f, height, width, 4)
     else:
         _, sub_surface, sub_normal, sub_points, sub_origins = _trace(scene, extr, height * s, width * s)
         fine = _shade(scene, sub_surface, sub_normal, sub_points, sub_origins)
-        color = fine.reshape(f, height, s, width, s, 3).mean(dim=(2, 4))
+        shaded = fine.reshape(f, height, s, width, s, 4).mean(dim=(2, 4))
     if "exposure" in scene.effects:
-        color = color * scene.gains[idx, None, None, None]
+        shaded = shaded * scene.gains[idx, None, None, None]
+    color, highlight = shaded[..., :3], shaded[..., 3]
     shape = (f, height, width)
     return RenderedFrames(
         images=color.clamp(0.0, 1.0),
+        specular=highlight,
         depth=t.reshape(shape),
         surface=surface.reshape(shape),
         points=points.reshape(*shape, 3),
@@ -326,9 +344,11 @@ def sample_scene(
     effect_probs: dict[str, float] | None = None,
     texture_scale: float = 1.0,
     turn_scale: float = 1.0,
+    glossy_fraction: float = DEFAULT_GLOSSY_FRACTION,
 ) -> Scene:
     """A random scene, fully determined by ``seed``. ``effects`` forces the declared effects; otherwise each
-    effect is declared with its probability in ``effect_probs``."""
+    effect is declared with its probability in ``effect_probs``. ``glossy_fraction``: the share of surfaces
+    that get a highlight under ``specular`` (it changes no random draw, so the geometry stays the same)."""
     if frames < 3:
         raise ValueError(f"a scene needs at least 3 frames (two context views and a target), got {frames}")
     rng = np.random.default_rng(seed)
@@ -357,7 +377,7 @@ def sample_scene(
             spheres.append((centre, size[0]))
 
     n_surfaces = 6 + len(boxes) + len(spheres)
-    materials = _materials(rng, n_surfaces, specular_fraction=0.6, texture_scale=texture_scale)
+    materials = _materials(rng, n_surfaces, specular_fraction=glossy_fraction, texture_scale=texture_scale)
     fov_x = math.radians(rng.uniform(55.0, 75.0))
     fx = 0.5 / math.tan(fov_x / 2)
     intrinsics = torch.tensor([[fx, 0.0, 0.5], [0.0, fx * width / height, 0.5], [0.0, 0.0, 1.0]])
@@ -414,7 +434,8 @@ def recommended_gaps(frames: int) -> tuple[int, int]:
 
 
 def scene_to_chunk_entry(scene: Scene, rendered: RenderedFrames, jpeg_quality: int = 95) -> dict:
-    """A rendered scene as a chunk dict in the real field layout, plus ``depths`` [F, H, W] and ``effects``."""
+    """A rendered scene as a chunk dict in the real field layout, plus ``depths`` [F, H, W], ``effects`` and
+    ``specular`` float16 [F, H, W], the specular term's magnitude per pixel (all zero without ``specular``)."""
     images = (rendered.images * 255.0).round().to(torch.uint8).numpy()
     return {
         "url": f"synthetic://{scene.key}",
@@ -424,13 +445,13 @@ def scene_to_chunk_entry(scene: Scene, rendered: RenderedFrames, jpeg_quality: i
         "key": scene.key,
         "depths": rendered.depth.clone(),
         "effects": sorted(scene.effects),
+        "specular": rendered.specular.to(torch.float16),
     }
 
 
 def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int, width: int, seed: int,
-                  scenes_per_chunk: int, effect_probs: dict[str, float] | None, jpeg_quality: int,
-                  supersample: int, texture_scale: float, turn_scale: float, eval_index: dict,
-                  bar) -> None:  # fmt: skip
+                  scenes_per_chunk: int, scene_options: dict, jpeg_quality: int, supersample: int,
+                  eval_index: dict, bar) -> None:  # fmt: skip
     lo, hi = recommended_gaps(frames)
     eval_rng = np.random.default_rng(seed + 7_919)
     for split, count, offset in (("train", scenes, 0), ("test", n_test, 1_000_000)):
@@ -442,8 +463,7 @@ def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int,
             for i in range(start, min(count, start + scenes_per_chunk)):
                 scene_seed = seed * 10_000_019 + offset + i
                 scene = sample_scene(scene_seed, frames, height, width, key=f"{split}{seed:03d}_{i:05d}",
-                                     effect_probs=effect_probs, texture_scale=texture_scale,
-                                     turn_scale=turn_scale)  # fmt: skip
+                                     **scene_options)  # fmt: skip
                 rendered = render_scene(scene, height, width, supersample=supersample)
                 chunk.append(scene_to_chunk_entry(scene, rendered, jpeg_quality))
                 if split == "test":
@@ -474,6 +494,9 @@ def generate_dataset(
     supersample: int = 1,
     texture_scale: float = 1.0,
     turn_scale: float = 1.0,
+    effects: tuple[str, ...] | None = None,
+    glossy_fraction: float = DEFAULT_GLOSSY_FRACTION,
+    preset: str | None = None,
     progress: bool = False,
 ) -> dict:
     """Write a synthetic data set in the chunk format: ``out/{train,test}/*.torch`` + ``index.json``,
@@ -482,8 +505,19 @@ def generate_dataset(
 
     ``scenes`` is the number of training scenes; ``test_scenes`` defaults to half of it (at least 1).
     ``supersample`` s > 1 anti-aliases the images with s x s rays per pixel (about s^2 times slower).
+    ``effects`` declares the same effects in every scene (else each is drawn with ``effect_probs``);
+    ``glossy_fraction`` is the share of glossy surfaces; ``preset`` (a key of ``PRESETS``: ``specular`` or
+    ``diffuse``) sets both. The same seed gives the same geometry, materials and cameras under either preset.
     Returns the ``dataset.json`` contents.
     """
+    if preset is not None:
+        if preset not in PRESETS:
+            raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS)}")
+        if effects is not None or effect_probs:
+            raise ValueError(f"preset {preset!r} fixes the effects; do not also pass effects or effect_probs")
+        effects, glossy_fraction = PRESETS[preset]["effects"], PRESETS[preset]["glossy_fraction"]
+    if not 0.0 <= glossy_fraction <= 1.0:
+        raise ValueError(f"glossy_fraction must lie in [0, 1], got {glossy_fraction}")
     if min(scenes, frames, height, width, scenes_per_chunk) < 1:
         raise ValueError("scenes, frames, height, width and scenes_per_chunk must be positive")
     if frames < 5:
@@ -497,8 +531,10 @@ def generate_dataset(
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small element-wise kernels: extra threads only spin (10x slower on a busy CPU)
     try:
-        _write_splits(out, scenes, n_test, frames, height, width, seed, scenes_per_chunk, effect_probs,
-                      jpeg_quality, supersample, texture_scale, turn_scale, eval_index, bar)  # fmt: skip
+        scene_options = {"effect_probs": effect_probs, "texture_scale": texture_scale, "turn_scale": turn_scale,
+                         "effects": effects, "glossy_fraction": glossy_fraction}  # fmt: skip
+        _write_splits(out, scenes, n_test, frames, height, width, seed, scenes_per_chunk, scene_options,
+                      jpeg_quality, supersample, eval_index, bar)  # fmt: skip
     finally:
         torch.set_num_threads(threads)
         bar.close()
@@ -513,6 +549,9 @@ def generate_dataset(
         "supersample": supersample,
         "texture_scale": texture_scale,
         "turn_scale": turn_scale,
+        "preset": preset,
+        "effects": None if effects is None else sorted(effects),
+        "glossy_fraction": glossy_fraction,
         "train_scenes": scenes,
         "test_scenes": n_test,
         "gap_range": [lo, hi],

@@ -17,22 +17,33 @@ from torch import Tensor
 
 from .metrics import OVERLAP_BUCKETS
 
-METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg")
+# psnr_highlight / psnr_rest: PSNR on the target pixels the shards mark as specular highlights and on the others
+# (per image, averaged over a scene's views that have such pixels; empty where none has); highlight_fraction:
+# the share of highlight pixels. Empty for data without highlight masks.
+METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "psnr_highlight", "psnr_rest",
+           "highlight_fraction")  # fmt: skip
 CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", *METRICS)
 
 
+def _finite(value: float | None) -> bool:
+    return value is not None and math.isfinite(value)
+
+
 def _mean(values: list[float]) -> float | None:
-    finite = [v for v in values if v is not None and math.isfinite(v)]
+    finite = [v for v in values if _finite(v)]
     return float(np.mean(finite)) if finite else None
 
 
 def summarize(rows: list[dict], lpips_unavailable: str | None = None) -> dict:
     """Mean of every metric over all scenes and per overlap bucket (small / medium / large / unknown).
 
-    A metric nobody could compute is reported as null; with ``lpips_unavailable`` its reason is recorded.
+    A metric is averaged over the scenes where it is finite (a scene without highlight pixels has no
+    ``psnr_highlight``); ``counts`` says over how many. A metric nobody could compute is reported as null;
+    with ``lpips_unavailable`` its reason is recorded.
     """
     rows = sorted(rows, key=lambda r: r["scene"])
     summary: dict = {"num_scenes": len(rows), "metrics": {m: _mean([r.get(m) for r in rows]) for m in METRICS}}
+    summary["counts"] = {m: sum(_finite(r.get(m)) for r in rows) for m in METRICS}
     summary["buckets"] = {}
     for bucket in (*OVERLAP_BUCKETS, "unknown"):
         members = [r for r in rows if r["bucket"] == bucket]
@@ -59,10 +70,15 @@ def write_results(
         writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS, extrasaction="ignore")
         writer.writeheader()
         for row in rows:
-            writer.writerow({k: ("" if row.get(k) is None else row.get(k)) for k in CSV_COLUMNS})
+            writer.writerow({k: _cell(row.get(k)) for k in CSV_COLUMNS})
     summary = {"cameras": cameras, **summarize(rows, lpips_unavailable)}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def _cell(value):
+    """A CSV cell: empty for a missing value or NaN (a metric the scene does not have)."""
+    return "" if value is None or (isinstance(value, float) and math.isnan(value)) else value
 
 
 def depth_to_rgb(depth: Tensor) -> Tensor:

@@ -26,6 +26,32 @@ def psnr(pred: Tensor, target: Tensor) -> Tensor:
     )
 
 
+def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
+    """Per-image PSNR in dB over the masked pixels only (all three channels of each):
+    pred, target [N, 3, H, W] in [0, 1], mask [N, 1, H, W] bool -> [N].
+
+    An image with an empty mask has no such PSNR: NaN, never a made-up number (``nanmean`` or the summary's
+    finite mean skips it). A perfect match on a non-empty mask gives +inf, like ``psnr``.
+    """
+    weight = mask.to(pred.dtype).expand_as(pred)
+    count = weight.flatten(1).sum(-1)  # [N] masked values
+    sq = (pred.float().clamp(0, 1) - target.float()) ** 2
+    mse = (sq * weight).flatten(1).sum(-1) / count.clamp_min(1.0)
+    value = -10.0 * torch.log10(mse)
+    return torch.where(count > 0, value, torch.full_like(value, math.nan))
+
+
+def highlight_psnr(pred: Tensor, target: Tensor, highlight: Tensor) -> dict[str, Tensor]:
+    """PSNR on highlight pixels and on the rest, and the highlight share, per image:
+    pred, target [N, 3, H, W], highlight [N, 1, H, W] bool -> {"psnr_highlight", "psnr_rest",
+    "highlight_fraction"}, each [N] (NaN where the pixel set is empty)."""
+    return {
+        "psnr_highlight": masked_psnr(pred, target, highlight),
+        "psnr_rest": masked_psnr(pred, target, ~highlight),
+        "highlight_fraction": highlight.float().flatten(1).mean(-1),
+    }
+
+
 def ssim(pred: Tensor, target: Tensor) -> Tensor:
     """Per-image SSIM (Gaussian window 11, σ 1.5): pred, target [N, 3, H, W] in [0, 1] -> [N]."""
     return structural_similarity_index_measure(

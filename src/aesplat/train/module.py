@@ -37,7 +37,7 @@ from aesplat.types import BatchedExample, RenderOutput
 
 from .evaluation import save_image, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, maybe_lpips
-from .metrics import overlap_bucket, psnr, relative_pose_errors, ssim
+from .metrics import highlight_psnr, overlap_bucket, psnr, relative_pose_errors, ssim
 from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates
 from .rng import restore_rng_state, rng_state
 from .skip_guard import SkipGuard
@@ -226,6 +226,11 @@ class AESplatModule(LightningModule):
 
     def test_step(self, batch: BatchedExample, batch_idx: int) -> None:
         metrics, rendered = self._evaluate(batch)
+        if batch.highlight is not None:  # highlight pixels vs the rest; a view without highlights is skipped
+            b, vt = batch.highlight.shape[:2]
+            split = highlight_psnr(rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1),
+                                   batch.highlight.flatten(0, 1))  # fmt: skip
+            metrics.update({k: v.reshape(b, vt).nanmean(1) for k, v in split.items()})
         for i in range(batch.batch_size):
             overlap = None if batch.overlap is None else float(batch.overlap[i])
             row = {
@@ -242,6 +247,8 @@ class AESplatModule(LightningModule):
                                    rendered.color[i : i + 1], rendered.depth[i : i + 1])  # fmt: skip
                 save_image(grid, self.test_output_dir / "renders" / f"{_safe(row['scene'])}.png")
         for key, values in metrics.items():
+            if key not in _METRIC_KEYS:  # highlight metrics (NaN for diffuse scenes) go to the CSV only
+                continue
             self.log(f"test/{key}", values.mean(), batch_size=batch.batch_size, sync_dist=True)
 
     def on_test_epoch_start(self) -> None:

@@ -1,0 +1,353 @@
+#!/usr/bin/env python
+"""Does decoupled appearance help? The paper's ablation (Tab. 4), scaled down to synthetic scenes on the CPU.
+
+    python benchmarks/appearance_ablation.py [--seeds 3 --free-seeds 2 --steps 500 --size 56 ...]
+
+1. Data: the ``specular`` preset of ``data_prep/synthetic.py`` (every scene and surface glossy) and its
+   ``diffuse`` control (the same scenes, highlights off), converted to shards whose test targets carry
+   highlight masks (pixels whose specular term exceeds 0.05).
+2. Runs: every appearance row (``full``, ``no_gvsre``, ``no_wcm``, ``baseline_i2dc``, ``baseline``,
+   ``i2dc_only``) trained with the data set's poses (``model.cameras: dataset``) on both sets with ``--seeds``
+   seeds, and pose-free (``model.cameras: predicted``) on the specular set with ``--free-seeds`` seeds; each
+   with ``aesplat fit`` then ``aesplat test`` (run in this process) from ``conf/appearance_ablation.yaml``.
+   Same data, steps and settings for every run; the seed sets the initialisation and the data order.
+3. Report, under ``--out`` (default benchmarks/ablation/): ``runs.csv`` (one line per run), ``table.csv`` and
+   ``table.md`` (per set, camera source and row: mean and 95 % t-interval over seeds of PSNR on all, highlight
+   and non-highlight pixels and SSIM, and the paired per-seed difference to ``full`` with its interval), and
+   ``ablation.png`` (one panel per set and camera source).
+
+Data and checkpoints go under ``--work`` (default outputs/ablation/). The runner resumes: a run whose
+``test/summary.json`` exists is not retrained, an interrupted fit continues from its last checkpoint, and the
+report is rebuilt from every run's results. A run made with other settings is an error, never silently reused.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+ROWS = ("full", "no_gvsre", "no_wcm", "baseline_i2dc", "baseline", "i2dc_only")  # the paper's table order
+SETS = ("specular", "diffuse")
+METRICS = ("psnr", "psnr_highlight", "psnr_rest", "ssim")
+LABELS = {"psnr": "PSNR", "psnr_highlight": "PSNR highlight", "psnr_rest": "PSNR rest", "ssim": "SSIM"}
+FRAMES = 32  # per scene; the config's curriculum (gaps 5..21) is the generator's suggestion for 32 frames
+# Two-sided 95 % quantiles of Student's t, by degrees of freedom (beyond 30: the normal 1.96).
+T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
+       2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045,
+       2.042)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What every run shares; recorded next to each run's results, which are reused only under the same."""
+
+    config: str
+    size: int
+    steps: int
+    scenes: int
+    test_scenes: int
+    data_seed: int
+    extra: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Run:
+    dataset: str  # specular | diffuse
+    cameras: str  # dataset (posed) | predicted (pose-free)
+    row: str
+    seed: int
+
+    def directory(self, work: Path) -> Path:
+        return work / "runs" / f"{self.dataset}_{self.cameras}" / self.row / f"seed{self.seed}"
+
+
+# ----------------------------------------------------------------------------------------------- statistics
+
+
+def t_quantile_95(df: int) -> float:
+    """Two-sided 95 % quantile of Student's t with ``df`` >= 1 degrees of freedom."""
+    if df < 1:
+        raise ValueError(f"a t-interval needs at least 2 values (df >= 1), got df={df}")
+    return T95[df - 1] if df <= len(T95) else 1.96
+
+
+def t_interval(values: list[float]) -> tuple[float, float, int]:
+    """(mean, half-width of the 95 % t-interval, n) of the finite values; half-width NaN below 2 values."""
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    n = len(finite)
+    if n == 0:
+        return math.nan, math.nan, 0
+    mean = sum(finite) / n
+    if n < 2:
+        return mean, math.nan, n
+    sd = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1))
+    return mean, t_quantile_95(n - 1) * sd / math.sqrt(n), n
+
+
+def paired_differences(results: dict[Run, dict], dataset: str, cameras: str, row: str, seeds: list[int],
+                       metric: str) -> list[float]:  # fmt: skip
+    """Per seed: ``row`` minus ``full`` (same set, cameras and seed), where both have the metric."""
+    out = []
+    for seed in seeds:
+        a = (results.get(Run(dataset, cameras, row, seed)) or {}).get(metric)
+        b = (results.get(Run(dataset, cameras, "full", seed)) or {}).get(metric)
+        if a is not None and b is not None and math.isfinite(a) and math.isfinite(b):
+            out.append(a - b)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- data and runs
+
+
+def prepare_data(preset: str, work: Path, settings: Settings) -> Path:
+    """Generate (once) the preset's chunks and convert them to shards (resumable); returns the shard folder."""
+    from aesplat.data import convert_dataset
+    from aesplat.data.synthetic import generate_dataset
+
+    src, shards = work / "src" / preset, work / "shards" / preset
+    want = {"preset": preset, "height": settings.size, "train_scenes": settings.scenes,
+            "test_scenes": settings.test_scenes, "seed": settings.data_seed, "frames": FRAMES}  # fmt: skip
+    info_file = src / "dataset.json"
+    if info_file.exists():
+        info = json.loads(info_file.read_text())
+        if {k: info.get(k) for k in want} != want:
+            raise SystemExit(f"{src} holds another data set ({info_file}); delete it or choose another --work")
+    else:
+        print(f"[data] generating the {preset} set in {src}", flush=True)
+        generate_dataset(src, scenes=settings.scenes, test_scenes=settings.test_scenes, frames=FRAMES,
+                         height=settings.size, width=round(settings.size * 4 / 3), seed=settings.data_seed,
+                         supersample=2, preset=preset)  # fmt: skip
+    manifest = convert_dataset(src, shards, size=settings.size, progress=False)
+    share = manifest["splits"]["test"].get("highlight_share", 0.0)
+    print(
+        f"[data] {preset}: {share:.1%} of test-target pixels are highlights (specular term > 0.05)", flush=True
+    )
+    return shards
+
+
+def plan(rows: list[str], seeds: int, free_seeds: int, sets: list[str]) -> list[Run]:
+    """Posed runs on every set, then pose-free runs on the specular set (if it is among ``sets``)."""
+    runs = [Run(s, "dataset", row, seed) for s in sets for seed in range(seeds) for row in rows]
+    if "specular" in sets:
+        runs += [Run("specular", "predicted", row, seed) for seed in range(free_seeds) for row in rows]
+    return runs
+
+
+def train_and_test(run: Run, shards: Path, work: Path, settings: Settings) -> None:
+    """``aesplat fit`` (continuing an interrupted fit) then ``aesplat test`` of its last checkpoint."""
+    from aesplat.cli import run_lightning
+
+    folder = run.directory(work)
+    folder.mkdir(parents=True, exist_ok=True)
+    _check_settings(folder, settings)  # an interrupted fit continues only under the same settings
+    (folder / "settings.json").write_text(json.dumps(asdict(settings), indent=1))
+    config = Path(settings.config) if Path(settings.config).is_absolute() else REPO / settings.config
+    common = ["-c", str(config), "--model.net.appearance", run.row, "--model.cameras", run.cameras,
+              "--seed_everything", str(run.seed), "--data.seed", str(run.seed), "--data.root", str(shards),
+              "--data.image_size", str(settings.size), "--trainer.max_steps", str(settings.steps),
+              "--trainer.default_root_dir", str(folder), *settings.extra]  # fmt: skip
+    start = time.perf_counter()
+    run_lightning(["fit", *common, "--ckpt_path", "last"])
+    fit_seconds = time.perf_counter() - start
+    run_lightning(["test", *common, "--ckpt_path", str(folder / "checkpoints" / "last.ckpt")])
+    timing = {"fit_seconds": fit_seconds, "test_seconds": time.perf_counter() - start - fit_seconds}
+    (folder / "timing.json").write_text(json.dumps(timing))
+
+
+def result(run: Run, work: Path, settings: Settings) -> dict | None:
+    """A finished run's metrics and timing, or None if it has not finished. Another setting is an error."""
+    folder = run.directory(work)
+    summary = folder / "test" / "summary.json"
+    if not summary.exists():
+        return None
+    _check_settings(folder, settings)
+    metrics = json.loads(summary.read_text())["metrics"]
+    timing_file = folder / "timing.json"
+    timing = json.loads(timing_file.read_text()) if timing_file.exists() else {}
+    return {**{m: metrics.get(m) for m in METRICS}, "fit_seconds": timing.get("fit_seconds")}
+
+
+def _check_settings(folder: Path, settings: Settings) -> None:
+    path = folder / "settings.json"
+    if path.exists() and json.loads(path.read_text()) != json.loads(json.dumps(asdict(settings))):
+        raise SystemExit(f"{folder} was run with other settings ({path}); delete it or choose another --work")
+
+
+# ----------------------------------------------------------------------------------------------- report
+
+
+def groups(runs: list[Run]) -> list[tuple[str, str]]:
+    return list(dict.fromkeys((r.dataset, r.cameras) for r in runs))
+
+
+def group_title(dataset: str, cameras: str) -> str:
+    return f"{dataset} set, {'posed (data set cameras)' if cameras == 'dataset' else 'pose-free (predicted)'}"
+
+
+def table_rows(runs: list[Run], results: dict[Run, dict], rows: list[str]) -> list[dict]:
+    """One line per (set, cameras, row): n, and per metric the mean, its half-width, and the paired
+    difference to ``full`` with its half-width."""
+    lines = []
+    for dataset, cameras in groups(runs):
+        seeds = sorted({r.seed for r in runs if (r.dataset, r.cameras) == (dataset, cameras)})
+        for row in rows:
+            line: dict = {"set": dataset, "cameras": cameras, "row": row}
+            mine = [results.get(Run(dataset, cameras, row, s)) for s in seeds]
+            line["n"] = sum(m is not None for m in mine)
+            for metric in METRICS:
+                mean, half, _ = t_interval([m.get(metric) for m in mine if m is not None])
+                line[metric], line[f"{metric}_ci"] = mean, half
+                if row != "full":
+                    diff = paired_differences(results, dataset, cameras, row, seeds, metric)
+                    line[f"{metric}_vs_full"], line[f"{metric}_vs_full_ci"], _ = t_interval(diff)
+            lines.append(line)
+    return lines
+
+
+def _fmt(mean: float | None, half: float | None, digits: int, signed: bool = False) -> str:
+    if mean is None or not math.isfinite(mean):
+        return "–"
+    text = f"{mean:+.{digits}f}" if signed else f"{mean:.{digits}f}"
+    return text + (f" ± {half:.{digits}f}" if half is not None and math.isfinite(half) else "")
+
+
+def markdown(lines: list[dict], runs: list[Run], results: dict[Run, dict], settings: Settings) -> str:
+    done = [results[r] for r in runs if r in results]
+    fit = [d["fit_seconds"] for d in done if d.get("fit_seconds") is not None]
+    out = [
+        "# Appearance ablation on synthetic scenes",
+        "",
+        f"Written by `python benchmarks/appearance_ablation.py` ({len(done)} of {len(runs)} runs finished; "
+        f"{settings.steps} steps, {settings.size}x{settings.size} images, {settings.scenes} training and "
+        f"{settings.test_scenes} test scenes, config `{settings.config}`"
+        + (f", extra overrides `{' '.join(settings.extra)}`" if settings.extra else "")
+        + f"; total fit time {sum(fit) / 60:.1f} min).",
+        "",
+        "Mean ± half-width of the 95 % t-interval over seeds. Δ: the paired per-seed difference to `full` "
+        "(same set, cameras and seed), mean ± half-width. PSNR highlight / rest: PSNR on the test-target "
+        "pixels whose specular term exceeds 0.05 and on the others (the diffuse set has no highlight pixels).",
+    ]
+    for dataset, cameras in groups(runs):
+        out += ["", f"## {group_title(dataset, cameras)}", ""]
+        head = ["row", "n", *(LABELS[m] for m in METRICS), *(f"Δ {LABELS[m]}" for m in METRICS)]
+        out += ["| " + " | ".join(head) + " |", "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |"]
+        for line in lines:
+            if (line["set"], line["cameras"]) != (dataset, cameras):
+                continue
+            digits = {m: 4 if m == "ssim" else 2 for m in METRICS}
+            cells = [f"`{line['row']}`", str(line["n"])]
+            cells += [_fmt(line[m], line[f"{m}_ci"], digits[m]) for m in METRICS]
+            cells += [
+                "(reference)" if line["row"] == "full" else
+                _fmt(line[f"{m}_vs_full"], line[f"{m}_vs_full_ci"], digits[m], signed=True)
+                for m in METRICS
+            ]  # fmt: skip
+            out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out) + "\n"
+
+
+def plot(lines: list[dict], runs: list[Run], path: Path) -> None:
+    """One panel per (set, cameras): PSNR on all / highlight / non-highlight pixels per row, with intervals."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = groups(runs)
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.2), squeeze=False)
+    for ax, (dataset, cameras) in zip(axes[0], panels):
+        mine = [line for line in lines if (line["set"], line["cameras"]) == (dataset, cameras)]
+        for k, (metric, colour) in enumerate(zip(METRICS[:3], ("black", "tab:orange", "tab:blue"))):
+            xs = [i + (k - 1) * 0.22 for i in range(len(mine))]
+            ys = [line[metric] for line in mine]
+            err = [0.0 if not math.isfinite(line[f"{metric}_ci"]) else line[f"{metric}_ci"] for line in mine]
+            if any(math.isfinite(y) for y in ys):
+                ax.errorbar(xs, ys, yerr=err, fmt="o", color=colour, capsize=3, label=LABELS[metric])
+        ax.set_xticks(range(len(mine)), [line["row"] for line in mine], rotation=30, ha="right")
+        ax.set_title(group_title(dataset, cameras))
+        ax.set_ylabel("test PSNR (dB), mean and 95 % interval over seeds")
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize="small")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(
+    out: Path, runs: list[Run], results: dict[Run, dict], rows: list[str], settings: Settings
+) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "runs.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["set", "cameras", "row", "seed", *METRICS, "fit_seconds"])
+        for run in runs:
+            if run in results:
+                r = results[run]
+                values = ["" if r.get(k) is None else r[k] for k in (*METRICS, "fit_seconds")]
+                writer.writerow([run.dataset, run.cameras, run.row, run.seed, *values])
+    lines = table_rows(runs, results, rows)
+    with open(out / "table.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for line in lines for k in line)))
+        writer.writeheader()
+        writer.writerows([{k: ("" if isinstance(v, float) and math.isnan(v) else v) for k, v in line.items()}
+                          for line in lines])  # fmt: skip
+    (out / "table.md").write_text(markdown(lines, runs, results, settings))
+    plot(lines, runs, out / "ablation.png")
+
+
+# ----------------------------------------------------------------------------------------------- command line
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", default=str(REPO / "benchmarks" / "ablation"), help="report folder")
+    p.add_argument("--work", default=str(REPO / "outputs" / "ablation"), help="data and checkpoints")
+    p.add_argument("--config", default="conf/appearance_ablation.yaml", help="base config of every run")
+    p.add_argument("--rows", nargs="+", default=list(ROWS), choices=ROWS, help="appearance rows (first: full)")
+    p.add_argument("--sets", nargs="+", default=list(SETS), choices=SETS, help="data sets")
+    p.add_argument("--seeds", type=int, default=3, help="seeds of the posed runs (default 3)")
+    p.add_argument("--free-seeds", type=int, default=2, help="seeds of the pose-free runs (default 2; 0: none)")
+    p.add_argument("--steps", type=int, default=500, help="training steps of every run (default 500)")
+    p.add_argument("--size", type=int, default=56, help="image side, a multiple of 14 (default 56)")
+    p.add_argument("--scenes", type=int, default=48, help="training scenes per set (default 48)")
+    p.add_argument("--test-scenes", type=int, default=16, help="test scenes per set (default 16)")
+    p.add_argument("--data-seed", type=int, default=0, help="seed of the synthetic scenes (default 0)")
+    p.add_argument("--report-only", action="store_true", help="only rebuild the report from finished runs")
+    p.add_argument("extra", nargs="*", help="after `--`: more overrides for every fit and test (same for all)")
+    a = p.parse_args(argv)
+    if a.rows[0] != "full":
+        p.error("--rows must start with full: the paired differences are taken against it")
+    if a.seeds < 1 or a.free_seeds < 0:
+        p.error("--seeds must be >= 1 and --free-seeds >= 0")
+    settings = Settings(config=a.config, size=a.size, steps=a.steps, scenes=a.scenes, test_scenes=a.test_scenes,
+                        data_seed=a.data_seed, extra=tuple(a.extra))  # fmt: skip
+    work, out = Path(a.work), Path(a.out)
+    runs = plan(a.rows, a.seeds, a.free_seeds, a.sets)
+    results = {run: r for run in runs if (r := result(run, work, settings)) is not None}
+    if not a.report_only:
+        shards = {s: prepare_data(s, work, settings) for s in a.sets}
+        for i, run in enumerate(runs, 1):
+            if run in results:
+                continue
+            print(f"[run {i}/{len(runs)}] {run.dataset} set, cameras {run.cameras}, {run.row}, seed {run.seed}",
+                  flush=True)  # fmt: skip
+            train_and_test(run, shards[run.dataset], work, settings)
+            results[run] = result(run, work, settings)
+            if results[run] is None:
+                raise RuntimeError(f"{run} finished without {run.directory(work) / 'test' / 'summary.json'}")
+    write_report(out, runs, results, a.rows, settings)
+    print(
+        f"wrote {out / 'table.md'}, table.csv, runs.csv and ablation.png ({len(results)} of {len(runs)} runs)"
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,122 @@
+"""benchmarks/appearance_ablation.py: its statistics, and a tiny grid run end to end with resumption."""
+
+import csv
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def _runner():
+    spec = importlib.util.spec_from_file_location("appearance_ablation", BENCHMARKS / "appearance_ablation.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_t_interval_by_hand():
+    runner = _runner()
+    mean, half, n = runner.t_interval([1.0, 2.0, 4.0, float("nan"), None])
+    sd = math.sqrt(((1 - 7 / 3) ** 2 + (2 - 7 / 3) ** 2 + (4 - 7 / 3) ** 2) / 2)
+    assert (mean, n) == (pytest.approx(7 / 3), 3)
+    assert half == pytest.approx(4.303 * sd / math.sqrt(3))  # t(0.975, df=2) = 4.303
+    assert runner.t_quantile_95(1) == 12.706 and runner.t_quantile_95(30) == 2.042
+    assert runner.t_quantile_95(1000) == 1.96
+    one = runner.t_interval([5.0])
+    assert one[0] == 5.0 and math.isnan(one[1]) and one[2] == 1
+    assert runner.t_interval([])[2] == 0
+
+
+def test_paired_differences_pair_by_seed():
+    runner = _runner()
+    run = runner.Run
+    results = {run("specular", "dataset", "full", 0): {"psnr": 20.0},
+               run("specular", "dataset", "full", 1): {"psnr": 22.0},
+               run("specular", "dataset", "baseline", 0): {"psnr": 19.0},
+               run("specular", "dataset", "baseline", 1): {"psnr": 21.5},
+               run("specular", "dataset", "baseline", 2): {"psnr": 30.0}}  # fmt: skip
+    diffs = runner.paired_differences(results, "specular", "dataset", "baseline", [0, 1, 2], "psnr")
+    assert diffs == [-1.0, -0.5]  # seed 2 has no `full` to pair with
+
+
+# Every run of these grids: 2 steps at 28x28, one test scene, SH degree 1, no workers.
+TINY = ["--steps", "2", "--size", "28", "--scenes", "2", "--test-scenes", "1", "--", "--data.num_workers", "0",
+        "--data.train_batches_per_epoch", "2", "--data.batch_size", "1", "--data.shuffle_buffer", "4",
+        "--model.net.sh_degree", "1", "--model.eval.num_sample_renders", "0",
+        "--last_checkpoint.every_n_train_steps", "2"]  # fmt: skip
+
+
+def _grid(tmp_path: Path, *options: str) -> tuple[list[str], list[dict], dict]:
+    """Run a tiny grid; returns its arguments, runs.csv and table.csv (keyed by set, cameras and row)."""
+    args = ["--work", str(tmp_path / "work"), "--out", str(tmp_path / "out"), *options, *TINY]
+    _runner().main(args)
+    with open(tmp_path / "out" / "runs.csv") as f:
+        runs = list(csv.DictReader(f))
+    with open(tmp_path / "out" / "table.csv") as f:
+        table = {(r["set"], r["cameras"], r["row"]): r for r in csv.DictReader(f)}
+    return args, runs, table
+
+
+def _psnr(runs: list[dict], dataset: str, cameras: str, row: str) -> list[float]:
+    return [float(r["psnr"]) for r in runs if (r["set"], r["cameras"], r["row"]) == (dataset, cameras, row)]
+
+
+def test_two_run_grid_reports_and_resumes(tmp_path, monkeypatch):
+    """The CI-sized grid: `full` and `i2dc_only`, posed, one seed, the specular set."""
+    args, runs, table = _grid(tmp_path, "--rows", "full", "i2dc_only", "--sets", "specular", "--seeds", "1",
+                              "--free-seeds", "0")  # fmt: skip
+    assert [(r["set"], r["cameras"], r["row"], r["seed"]) for r in runs] == [
+        ("specular", "dataset", "full", "0"), ("specular", "dataset", "i2dc_only", "0")]  # fmt: skip
+    for r in runs:
+        assert float(r["psnr"]) > 3 and float(r["psnr_rest"]) > 3 and float(r["fit_seconds"]) > 0
+    work = tmp_path / "work"
+    assert json.loads((work / "shards" / "specular" / "manifest.json").read_text())["splits"]["test"][
+        "highlight_share"] > 0.01  # fmt: skip
+    line = table[("specular", "dataset", "i2dc_only")]
+    diff = _psnr(runs, "specular", "dataset", "i2dc_only")[0] - _psnr(runs, "specular", "dataset", "full")[0]
+    assert float(line["psnr_vs_full"]) == pytest.approx(diff, abs=1e-9)
+    assert line["n"] == "1" and line["psnr_ci"] == "" and line["psnr_vs_full_ci"] == ""  # one seed: no interval
+    assert "## specular set, posed" in (tmp_path / "out" / "table.md").read_text()
+    assert (tmp_path / "out" / "ablation.png").stat().st_size > 0
+    config = (work / "runs" / "specular_dataset" / "i2dc_only" / "seed0" / "config.yaml").read_text()
+    assert "appearance: i2dc_only" in config and "cameras: dataset" in config
+
+    # Resumption: finished runs are not retrained; a run without its result is, alone.
+    runner = _runner()
+    calls = []
+    monkeypatch.setattr(runner, "train_and_test", lambda run, *a: calls.append(run))
+    runner.main(args)
+    assert calls == []
+    (work / "runs" / "specular_dataset" / "full" / "seed0" / "test" / "summary.json").unlink()
+    with pytest.raises(RuntimeError, match="without"):  # the stub writes no result, which is an error
+        runner.main(args)
+    assert calls == [runner.Run("specular", "dataset", "full", 0)]
+    # Other settings never reuse these results.
+    with pytest.raises(SystemExit, match="other settings"):
+        runner.main([*args[:-1], "4"])
+
+
+@pytest.mark.slow
+def test_full_tiny_grid_both_sets_and_pose_free(tmp_path):
+    """Both sets posed with two seeds, and pose-free on the specular set: 10 runs."""
+    _, runs, table = _grid(tmp_path, "--rows", "full", "i2dc_only", "--seeds", "2", "--free-seeds", "1")
+    assert len(runs) == 10
+    assert {(r["set"], r["cameras"]) for r in runs} == {("specular", "dataset"), ("diffuse", "dataset"),
+                                                        ("specular", "predicted")}  # fmt: skip
+    for r in runs:  # the diffuse control has no highlight pixel: no highlight PSNR, the rest is the whole image
+        if r["set"] == "diffuse":
+            assert r["psnr_highlight"] == "" and float(r["psnr_rest"]) == pytest.approx(float(r["psnr"]), 1e-4)
+    line = table[("specular", "dataset", "i2dc_only")]
+    full, mine = _psnr(runs, "specular", "dataset", "full"), _psnr(runs, "specular", "dataset", "i2dc_only")
+    assert float(line["psnr"]) == pytest.approx(sum(mine) / 2, abs=1e-9)
+    assert float(line["psnr_vs_full"]) == pytest.approx((mine[0] - full[0] + mine[1] - full[1]) / 2, abs=1e-9)
+    assert line["n"] == "2" and line["psnr_vs_full_ci"] != ""
+    assert table[("specular", "predicted", "full")]["psnr_ci"] == ""  # one seed: no interval
+    text = (tmp_path / "out" / "table.md").read_text()
+    assert "## diffuse set, posed" in text and "pose-free" in text
