@@ -78,6 +78,9 @@ def test_train_launch_matches_lightning_slurm_environment(tmp_path, monkeypatch)
     # Lightning, inside one of those tasks, detects SLURM and accepts devices / num_nodes as launched.
     for key, value in SLURM_ENV.items():
         monkeypatch.setenv(key, value)
+    for key in ("MASTER_ADDR", "MASTER_PORT"):  # SLURMEnvironment writes these into os.environ: undo on exit
+        monkeypatch.setenv(key, "")
+        monkeypatch.delenv(key)
     monkeypatch.setenv("SLURM_NTASKS_PER_NODE", "4")  # srun sets the plain count inside a task
     assert SLURMEnvironment.detect()
     env = SLURMEnvironment()

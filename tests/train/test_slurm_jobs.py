@@ -52,6 +52,10 @@ def job_env() -> dict[str, str]:
         "AESPLAT_SLURM_CPU": "1",
         "PYTHONPATH": f"{REPO / 'src'}:{REPO}",  # this checkout, and tests.train.helpers for the recorder
         "WANDB_MODE": "offline",
+        # A stale rendezvous address in the submitting shell (an earlier torchrun, or Lightning's own
+        # SLURMEnvironment in this process) must not reach the ranks: train.sbatch drops it.
+        "MASTER_ADDR": "stale-host.invalid",
+        "MASTER_PORT": "1",
     }
 
 
