@@ -5,9 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from aesplat.geometry import covariance_from_scale_rot, eval_sh, invert_pose
+from aesplat.geometry import covariance_from_scale_rot, eval_sh, invert_pose, safe_unit_quat
 from aesplat.render import RenderSettings, fold_intrinsics, gsplat_available, reference_intrinsics, render
-from aesplat.render.gsplat_backend import unit_quats
 from aesplat.render.torch_backend import render_torch
 from aesplat.types import Gaussians
 
@@ -28,7 +27,7 @@ def _render_like_gsplat(g: Gaussians, viewmats: torch.Tensor, sh_degree: int):
     n, dtype = g.means.shape[1], g.means.dtype
     m, t = viewmats[..., :3, :3], viewmats[..., :3, 3]
     means = torch.einsum("bvij,bnj->bvni", m, g.means) + t[:, :, None]  # [B, V, N, 3]
-    cov_w = covariance_from_scale_rot(g.scales, unit_quats(g.quats))  # [B, N, 3, 3]
+    cov_w = covariance_from_scale_rot(g.scales, safe_unit_quat(g.quats))  # [B, N, 3, 3]
     cov = m[:, :, None] @ cov_w[:, None] @ m[:, :, None].transpose(-1, -2)  # [B, V, N, 3, 3]
     campos = torch.linalg.inv(viewmats)[..., :3, 3]  # [B, V, 3]
     d = g.means[:, None] - campos[:, :, None]
@@ -81,9 +80,9 @@ def test_fold_is_the_pose_for_the_reference_camera_and_keeps_the_camera_centre()
     torch.testing.assert_close(torch.linalg.inv(folded)[..., :3, 3], ext[..., :3, 3])
 
 
-def test_unit_quats_are_safe_at_zero():
+def test_safe_unit_quat_is_safe_at_zero():
     q = torch.tensor([[0.0, 0.0, 0.0, 0.0], [2.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0]], requires_grad=True)
-    u = unit_quats(q)
+    u = safe_unit_quat(q)
     torch.testing.assert_close(u.detach(), torch.tensor([[1.0, 0, 0, 0], [1.0, 0, 0, 0], [0.5, 0.5, 0.5, 0.5]]))
     u.sum().backward()
     assert torch.isfinite(q.grad).all() and (q.grad[0] == 0).all()

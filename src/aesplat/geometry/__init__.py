@@ -25,6 +25,7 @@ from .rotation import (
     rot6d_to_matrix,
     safe_norm,
     safe_normalize,
+    safe_unit_quat,
 )
 from .sh import (
     C0,
@@ -63,6 +64,7 @@ __all__ = [
     "rot6d_to_matrix",
     "safe_norm",
     "safe_normalize",
+    "safe_unit_quat",
     "sh_basis",
     "sh_dc_to_rgb",
     "sh_degree_from_coeffs",

@@ -98,16 +98,23 @@ def relative_to_first(extrinsics: Tensor) -> Tensor:
     return torch.cat([eye.expand_as(rel[:, :1]), rel[:, 1:]], dim=1)
 
 
-def quat_to_matrix(quats: Tensor) -> Tensor:
-    """Quaternions (w, x, y, z) [..., 4] -> rotation matrices [..., 3, 3].
-
-    Normalised inside; a zero (or near-zero) quaternion maps to the identity with zero gradient.
-    """
+def safe_unit_quat(quats: Tensor) -> Tensor:
+    """Quaternions (w, x, y, z) [..., 4] normalised; a zero (or near-zero) one maps to the identity with zero
+    gradient. The one rule for degenerate rotations: the torch renderer (via :func:`quat_to_matrix`) and the
+    gsplat backend (which would give NaN for a zero quaternion) both use it."""
     n2 = (quats * quats).sum(-1, keepdim=True)
     ok = n2 > EPS
     ident = torch.zeros_like(quats)
     ident[..., 0] = 1.0
-    q = torch.where(ok, quats * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2))), ident)
+    return torch.where(ok, quats * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2))), ident)
+
+
+def quat_to_matrix(quats: Tensor) -> Tensor:
+    """Quaternions (w, x, y, z) [..., 4] -> rotation matrices [..., 3, 3].
+
+    Normalised inside (:func:`safe_unit_quat`): a zero quaternion maps to the identity with zero gradient.
+    """
+    q = safe_unit_quat(quats)
     w, x, y, z = q.unbind(-1)
     rows = [
         1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from aesplat.geometry import invert_pose, num_sh_coeffs
+from aesplat.geometry import invert_pose, num_sh_coeffs, safe_unit_quat
 from aesplat.types import Gaussians, RenderOutput
 
 from .projection import ALPHA_MIN
@@ -31,7 +31,6 @@ from .settings import RenderSettings, RenderStats
 
 REFERENCE_FOCAL = 1.0  # normalised focal length of the fixed reference camera
 REFERENCE_CENTER = 0.5
-_QUAT_EPS = 1e-8  # squared norm below which a quaternion is taken as the identity (as quat_to_matrix does)
 
 
 def reference_intrinsics(dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -58,19 +57,6 @@ def fold_intrinsics(
         dim=-1,
     ).unflatten(-1, (4, 4))  # fmt: skip
     return fold @ invert_pose(extrinsics)
-
-
-def unit_quats(quats: Tensor) -> Tensor:
-    """Quaternions [..., 4] normalised, a (near-)zero one replaced by the identity with zero gradient.
-
-    gsplat normalises too, but a zero quaternion would give it NaN; this is the rule ``quat_to_matrix``
-    applies for the torch backend, so both backends agree on degenerate Gaussians.
-    """
-    n2 = (quats * quats).sum(-1, keepdim=True)
-    ok = n2 > _QUAT_EPS
-    identity = torch.zeros_like(quats)
-    identity[..., 0] = 1.0
-    return torch.where(ok, quats * torch.rsqrt(torch.where(ok, n2, torch.ones_like(n2))), identity)
 
 
 def _import_gsplat():
@@ -108,7 +94,7 @@ def render_gsplat(
     pixels = g.means.new_tensor([width, height, 1.0])[:, None]
     k_ref = (reference_intrinsics(torch.float32, g.means.device) * pixels).expand(b, v, 3, 3).contiguous()
     colors, alphas, _ = gsplat.rasterization(
-        means=g.means, quats=unit_quats(g.quats), scales=g.scales, opacities=g.opacities,
+        means=g.means, quats=safe_unit_quat(g.quats), scales=g.scales, opacities=g.opacities,
         colors=g.sh[:, :, : num_sh_coeffs(sh_degree)], sh_degree=sh_degree, viewmats=viewmats, Ks=k_ref,
         width=width, height=height, near_plane=settings.near, far_plane=settings.far, eps2d=settings.eps2d,
         tile_size=settings.tile_size, backgrounds=background.float()[:, None].expand(b, v, 3).contiguous(),
