@@ -321,12 +321,21 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--test-scenes", type=int, default=16, help="test scenes per set (default 16)")
     p.add_argument("--data-seed", type=int, default=0, help="seed of the synthetic scenes (default 0)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the report from finished runs")
+    p.add_argument("--shard", default="0/1", metavar="K/N",
+                   help="train only the runs whose place in the plan is K modulo N (default 0/1: all); start N "
+                        "processes with 0/N .. N-1/N to use N cores, one thread each (--threads 1)")  # fmt: skip
     p.add_argument("extra", nargs="*", help="after `--`: more overrides for every fit and test (same for all)")
     a = p.parse_args(argv)
     if a.rows[0] != "full":
         p.error("--rows must start with full: the paired differences are taken against it")
     if a.seeds < 1 or a.free_seeds < 0:
         p.error("--seeds must be >= 1 and --free-seeds >= 0")
+    try:
+        shard, shards_total = (int(x) for x in a.shard.split("/"))
+        if not 0 <= shard < shards_total:
+            raise ValueError
+    except ValueError:
+        p.error(f"--shard must be K/N with 0 <= K < N, got {a.shard!r}")
     settings = Settings(config=a.config, size=a.size, steps=a.steps, scenes=a.scenes, test_scenes=a.test_scenes,
                         data_seed=a.data_seed, extra=tuple(a.extra))  # fmt: skip
     work, out = Path(a.work), Path(a.out)
@@ -335,7 +344,7 @@ def main(argv: list[str] | None = None) -> None:
     if not a.report_only:
         shards = {s: prepare_data(s, work, settings) for s in a.sets}
         for i, run in enumerate(runs, 1):
-            if run in results:
+            if run in results or (i - 1) % shards_total != shard:
                 continue
             print(f"[run {i}/{len(runs)}] {run.dataset} set, cameras {run.cameras}, {run.row}, seed {run.seed}",
                   flush=True)  # fmt: skip
@@ -343,6 +352,8 @@ def main(argv: list[str] | None = None) -> None:
             results[run] = result(run, work, settings)
             if results[run] is None:
                 raise RuntimeError(f"{run} finished without {run.directory(work) / 'test' / 'summary.json'}")
+        # other shards may have finished runs meanwhile: report everything on disk
+        results = {run: r for run in runs if (r := result(run, work, settings)) is not None}
     write_report(out, runs, results, a.rows, settings)
     print(
         f"wrote {out / 'table.md'}, table.csv, runs.csv and ablation.png ({len(results)} of {len(runs)} runs)"
