@@ -323,7 +323,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--report-only", action="store_true", help="only rebuild the report from finished runs")
     p.add_argument("--shard", default="0/1", metavar="K/N",
                    help="train only the runs whose place in the plan is K modulo N (default 0/1: all); start N "
-                        "processes with 0/N .. N-1/N to use N cores, one thread each (--threads 1)")  # fmt: skip
+                        "processes, 0/N .. N-1/N, to use N cores (one thread each)")  # fmt: skip
     p.add_argument("extra", nargs="*", help="after `--`: more overrides for every fit and test (same for all)")
     a = p.parse_args(argv)
     if a.rows[0] != "full":
