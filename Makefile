@@ -78,54 +78,22 @@ DEMO_CONFIG ?= conf/demo.yaml
 DEMO_DIR ?= outputs/demo
 # Image size of the demo shards; the same as data.image_size in conf/demo.yaml (its settings are tuned for 42).
 DEMO_SIZE ?= 42
-DEMO_RUN := $(DEMO_DIR)/run
-DEMO_CKPT := $(DEMO_RUN)/checkpoints/last.ckpt
-DEMO_TIMES := $(DEMO_DIR)/timings.csv
-DEMO_ARGS := -c $(DEMO_CONFIG) --data.root $(DEMO_DIR)/shards --data.image_size $(DEMO_SIZE)
+DEMO_CKPT := $(DEMO_DIR)/run/checkpoints/last.ckpt
 # Extra data_prep/synthetic.py options, e.g. DEMO_SCENE_ARGS="--texture-scale 1 --turn-scale 1" for the default scenes.
 DEMO_SCENE_ARGS ?=
 DEMO_FIT_ARGS ?=  # extra `aesplat fit` overrides, e.g. DEMO_FIT_ARGS="--trainer.max_steps 200"
 # DEMO_DIAGNOSE=1 (default) also trains the same model with the data set's cameras in place of the camera head's
-# (`--model.cameras dataset`; about two more minutes) so the report can say what learning the cameras costs.
-# Its trained checkpoint is tested without the flag: `aesplat test --ckpt_path` reads model.cameras from it.
+# (`--model.cameras dataset`, beside the method's training on the second core) so the report can say what
+# learning the cameras costs. Its checkpoint is tested without the flag: `aesplat test --ckpt_path` reads
+# model.cameras from it.
 DEMO_DIAGNOSE ?= 1
-DEMO_POSED := $(DEMO_DIR)/posed
 AESPLAT := $(VENV)/bin/aesplat
-# Lightning's CSV logger writes metrics.csv (the loss curve: every step) and config.yaml into the run directory.
-DEMO_LOG := --trainer.logger+=CSVLogger --trainer.logger.save_dir $(DEMO_RUN) --trainer.logger.name "" \
-	--trainer.logger.version "" --trainer.log_every_n_steps 1
-# After a stage's command: append "stage,seconds since t0" to the timings table.
-timed = echo "$(1),$$(( $$(date +%s) - t0 ))" >> $(DEMO_TIMES)
-
+# The pipeline is scripts/demo.sh (it runs the diagnostic beside the method's own training); these settings reach
+# it through the environment.
 demo: $(STAMP)
-	rm -rf $(DEMO_RUN) $(DEMO_DIR)/initial $(DEMO_DIR)/bench $(DEMO_POSED)
-	mkdir -p $(DEMO_DIR) && echo "stage,seconds" > $(DEMO_TIMES)
-	t0=$$(date +%s); $(PY) data_prep/synthetic.py --out $(DEMO_DIR)/src $(DEMO_SCENE_ARGS) \
-		&& $(call timed,synthetic scenes)
-	t0=$$(date +%s); $(PY) data_prep/to_shards.py --src $(DEMO_DIR)/src --out $(DEMO_DIR)/shards \
-		--size $(DEMO_SIZE) && $(call timed,shards)
-	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_DIR)/initial \
-		--trainer.logger false && $(call timed,aesplat test (untrained))
-	t0=$$(date +%s); $(AESPLAT) fit $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_RUN) $(DEMO_LOG) \
-		$(DEMO_FIT_ARGS) && $(call timed,aesplat fit)
-	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_RUN) \
-		--trainer.logger false --ckpt_path $(DEMO_CKPT) && $(call timed,aesplat test (trained))
-	t0=$$(date +%s); $(AESPLAT) bench --ckpt $(DEMO_CKPT) --out $(DEMO_DIR)/bench --scenes 2 --repeats 3 \
-		&& $(call timed,aesplat bench)
-ifeq ($(DEMO_DIAGNOSE),1)
-	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --model.cameras dataset \
-		--trainer.default_root_dir $(DEMO_POSED)/initial --trainer.logger false \
-		&& $(call timed,diagnostic: test with the data set's cameras (untrained))
-	t0=$$(date +%s); $(AESPLAT) fit $(DEMO_ARGS) --model.cameras dataset --trainer.default_root_dir $(DEMO_POSED)/run \
-		--trainer.logger false $(DEMO_FIT_ARGS) && $(call timed,diagnostic: fit with the data set's cameras)
-	t0=$$(date +%s); $(AESPLAT) test $(DEMO_ARGS) --trainer.default_root_dir $(DEMO_POSED)/run \
-		--trainer.logger false --ckpt_path $(DEMO_POSED)/run/checkpoints/last.ckpt \
-		&& $(call timed,diagnostic: test with the data set's cameras (trained))
-endif
-	$(PY) scripts/demo_report.py --run-dir $(DEMO_RUN) --initial $(DEMO_DIR)/initial/test \
-		--bench $(DEMO_DIR)/bench --timings $(DEMO_TIMES) --out $(DEMO_DIR) \
-		$(if $(filter 1,$(DEMO_DIAGNOSE)),--posed-initial $(DEMO_POSED)/initial/test \
-		--posed-trained $(DEMO_POSED)/run/test)
+	PY=$(PY) AESPLAT=$(AESPLAT) DEMO_CONFIG=$(DEMO_CONFIG) DEMO_DIR=$(DEMO_DIR) DEMO_SIZE=$(DEMO_SIZE) \
+		DEMO_SCENE_ARGS="$(DEMO_SCENE_ARGS)" DEMO_FIT_ARGS="$(DEMO_FIT_ARGS)" DEMO_DIAGNOSE=$(DEMO_DIAGNOSE) \
+		bash scripts/demo.sh
 
 # `make bench [CKPT=...] [BENCH_OUT=...]`: accuracy versus time of a trained checkpoint (default: the demo's).
 CKPT ?= $(DEMO_CKPT)

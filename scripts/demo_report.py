@@ -87,11 +87,33 @@ def read_metrics(run_dir: Path) -> list[dict[str, float]]:
         return [{k: float(v) for k, v in row.items() if v not in ("", None)} for row in csv.DictReader(f)]
 
 
+WALL_CLOCK = "wall clock"  # the timings row of the whole pipeline (scripts/demo.sh)
+
+
 def read_timings(path: Path | None) -> list[tuple[str, float]]:
     if path is None or not path.is_file():
         return []
     with open(path) as f:
         return [(row["stage"], float(row["seconds"])) for row in csv.DictReader(f)]
+
+
+def timings_section(timings: list[tuple[str, float]], steps: int) -> list[str]:
+    """The report's timings table. `make demo` ends it with the whole pipeline's wall time (a ``wall clock``
+    row): its diagnostic stages run beside the method's, so the stages add up to more than that."""
+    if not timings:
+        return []
+    wall = [s for stage, s in timings if stage.startswith(WALL_CLOCK)]
+    stages = [(stage, s) for stage, s in timings if not stage.startswith(WALL_CLOCK)]
+    total = wall[-1] if wall else sum(s for _, s in stages)
+    label = "total (wall clock; the diagnostic ran beside the method)" if wall else "total"
+    lines = ["## Timings", "", "| stage | wall time |", "| --- | ---: |"]
+    lines += [f"| {stage} | {seconds:.0f} s |" for stage, seconds in stages]
+    lines += [f"| **{label}** | **{total:.0f} s ({total / 60:.1f} min)** |", ""]
+    fit = dict(stages).get("aesplat fit")
+    if fit and steps > 0:
+        lines += [f"Training: {steps} steps in {fit:.0f} s ({fit / steps:.2f} s per step, start-up and "
+                  "validation included).", ""]  # fmt: skip
+    return lines
 
 
 def initial_model(config: dict, device: torch.device) -> torch.nn.Module:
@@ -385,15 +407,7 @@ def main(argv: list[str] | None = None) -> int:
                   "validation PSNR and the untrained/trained test PSNR marked.", ""]  # fmt: skip
     else:
         lines += ["(No loss curve: the run logged no metrics.csv — give `aesplat fit` a CSVLogger.)", ""]
-    if timings:
-        total = sum(s for _, s in timings)
-        lines += ["## Timings", "", "| stage | wall time |", "| --- | ---: |"]
-        lines += [f"| {stage} | {seconds:.0f} s |" for stage, seconds in timings]
-        lines += [f"| **total** | **{total:.0f} s ({total / 60:.1f} min)** |", ""]
-        fit = dict(timings).get("aesplat fit")
-        if fit and steps > 0:
-            lines += [f"Training: {steps} steps in {fit:.0f} s ({fit / steps:.2f} s per step, start-up and "
-                      "validation included).", ""]  # fmt: skip
+    lines += timings_section(timings, steps)
     bench_md = args.bench / "BENCH.md" if args.bench else None
     if bench_md is not None and bench_md.is_file():
         body = bench_md.read_text().splitlines()[1:]  # its title becomes the section heading below

@@ -42,3 +42,17 @@ def test_posed_section_is_empty_or_says_what_is_missing(tmp_path):
     )  # a gain no larger than the method's: no verdict on the poses
     lines = report.posed_section(initial, trained, tmp_path / "posed0", tmp_path / "posed1")
     assert not any("limits this run" in line for line in lines)
+
+
+def test_timings_total_is_the_wall_clock_when_stages_ran_side_by_side(tmp_path):
+    report = _report_module()
+    path = tmp_path / "timings.csv"
+    rows = ["stage,seconds", "shards,3", "aesplat fit,120", "diagnostic: fit with the data set's cameras,110",
+            "wall clock (whole pipeline),150"]  # fmt: skip
+    path.write_text("\n".join(rows) + "\n")
+    text = "\n".join(report.timings_section(report.read_timings(path), steps=600))
+    assert "| **total (wall clock; the diagnostic ran beside the method)** | **150 s (2.5 min)** |" in text
+    assert "wall clock (whole pipeline) |" not in text  # not listed as a stage
+    assert "Training: 600 steps in 120 s (0.20 s per step" in text
+    path.write_text("stage,seconds\nshards,3\naesplat fit,120\n")  # a table without the row: the stages' sum
+    assert "| **total** | **123 s (2.0 min)** |" in report.timings_section(report.read_timings(path), steps=600)
