@@ -287,6 +287,27 @@ def test_given_cameras_replace_the_camera_head(model):
     torch.testing.assert_close(moved.gaussians.means[:, :n], given.gaussians.means[:, :n])
 
 
+def test_given_cameras_with_targets_also_return_the_heads_prediction(model):
+    """The posed warm start: the given cameras make the Gaussians; the head's cameras (the same as a plain
+    pose-free pass) come back to be supervised. Targets never change the Gaussians (attention masking)."""
+    ctx, tgt = _images(1, 2, 0), _images(1, 1, 1)
+    with torch.no_grad():
+        own = model(ctx, tgt)
+        ext = own.extrinsics.clone()
+        ext[:, 1, :3, 3] += torch.tensor([0.5, 0.0, 0.0])
+        both = model(ctx, tgt, extrinsics=ext, intrinsics=own.intrinsics)
+        given = model(ctx, extrinsics=ext, intrinsics=own.intrinsics)
+    assert given.predicted_cameras is None and own.predicted_cameras is None
+    pred_e, pred_k = both.predicted_cameras
+    torch.testing.assert_close(pred_e, own.extrinsics)
+    torch.testing.assert_close(pred_k, own.intrinsics)
+    assert torch.equal(both.extrinsics, ext)
+    for name, value in _gaussian_fields(given.gaussians).items():
+        torch.testing.assert_close(getattr(both.gaussians, name), value, msg=name)
+    with pytest.raises(ValueError, match="give cameras for all 3 views"):
+        model(ctx, tgt, extrinsics=ext[:, :2], intrinsics=own.intrinsics[:, :2])
+
+
 @pytest.mark.parametrize(
     ("ext_shape", "intr_shape", "match"),
     [((1, 2, 4, 4), None, "both extrinsics and intrinsics"), ((1, 1, 4, 4), (1, 1, 3, 3), "V >= 2"),

@@ -1,5 +1,7 @@
 """LPIPS loading from the local torch hub cache (never downloaded) and the photometric loss."""
 
+import math
+
 import pytest
 import torch
 
@@ -8,6 +10,7 @@ from aesplat.train.loss import (
     LossConfig,
     LpipsWeightsMissing,
     PhotometricLoss,
+    camera_loss,
     gaussian_blur,
     load_lpips_network,
     maybe_lpips,
@@ -129,3 +132,43 @@ def test_context_views_add_their_weighted_loss():
     assert terms["total"].item() == pytest.approx(0.25 + 0.5 * 0.04)
     with pytest.raises(ValueError, match="context"):
         loss(pred, target)
+
+
+def _pose(angle: float, axis: int, t) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    i, j = [k for k in range(3) if k != axis]
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[i, i], pose[i, j], pose[j, i], pose[j, j] = c, -s, s, c
+    pose[:3, 3] = torch.tensor(t, dtype=torch.float64)
+    return pose
+
+
+def test_camera_loss_is_zero_at_the_truth_and_measures_each_part():
+    gt_e = torch.stack([torch.eye(4, dtype=torch.float64), _pose(0.3, 1, [0.5, 0.0, 0.1])])[None]
+    gt_k = torch.tensor([[1.2, 0, 0.5], [0, 1.1, 0.5], [0, 0, 1]], dtype=torch.float64).expand(1, 2, 3, 3)
+    zero = camera_loss(gt_e, gt_k, gt_e, gt_k)
+    assert all(float(v) == 0 for v in zero.values())
+    theta = 0.2  # view 1 turned a further 0.2 rad about y, moved 0.1 along x, focal lengths off by 0.05
+    pred_e = torch.stack([torch.eye(4, dtype=torch.float64), _pose(0.3 + theta, 1, [0.6, 0.0, 0.1])])[None]
+    pred_k = gt_k.clone()
+    pred_k[..., 0, 0] += 0.05
+    pred_k[..., 1, 1] -= 0.05
+    terms = camera_loss(pred_e, pred_k, gt_e, gt_k)
+    assert float(terms["rotation"]) == pytest.approx(8 * math.sin(theta / 2) ** 2, rel=1e-5)
+    assert float(terms["translation"]) == pytest.approx(0.1, rel=1e-5)
+    assert float(terms["focal"]) == pytest.approx(0.05, rel=1e-5)
+    parts = sum(float(terms[k]) for k in ("rotation", "translation", "focal"))
+    assert float(terms["total"]) == pytest.approx(parts)
+
+
+def test_camera_loss_gradient_is_finite_at_the_truth():
+    gt_e = torch.eye(4).expand(2, 3, 4, 4).clone()
+    pred_e = gt_e.clone().requires_grad_(True)
+    k = torch.eye(3).expand(2, 3, 3, 3).clone().requires_grad_(True)
+    camera_loss(pred_e, k, gt_e, torch.eye(3).expand(2, 3, 3, 3))["total"].backward()
+    assert torch.isfinite(pred_e.grad).all() and torch.isfinite(k.grad).all()
+
+
+def test_pose_weight_must_not_be_negative():
+    with pytest.raises(ValueError, match="pose_weight"):
+        LossConfig(pose_weight=-1.0)

@@ -263,3 +263,29 @@ def test_context_weight_renders_the_context_views_and_trains_the_pose_through_th
     terms["context_mse"].backward()
     grads = [p.grad for p in module.model.camera_head.parameters() if p.grad is not None]
     assert grads and sum(g.abs().sum() for g in grads) > 0
+
+
+def test_posed_warm_start_trains_the_camera_head_and_its_checkpoint_loads_as_weights(smoke_shards, tmp_path):
+    """model.cameras=dataset with loss.pose_weight > 0: renders use the data set's cameras, the camera head
+    runs on all views and learns from the supervised camera loss (logged), and the checkpoint becomes the
+    starting point of a pose-free run through model.net.weights (all of the model, backbone rate lowered)."""
+    L.seed_everything(0)
+    module = make_module(cameras="dataset", loss={"pose_weight": 1.0})
+    data = make_data(smoke_shards, train_batches_per_epoch=2)
+    before = {name: p.detach().clone() for name, p in module.model.camera_head.named_parameters()}
+    ckpt = ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True, save_top_k=0, every_n_train_steps=2)
+    trainer = make_trainer(2, tmp_path, callbacks=[ckpt])
+    trainer.fit(module, data)
+    assert {"train/pose_rotation", "train/pose_translation", "train/pose_focal"} <= set(trainer.logged_metrics)
+    assert trainer.logged_metrics["train/pose_translation"] > 0
+    changed = [n for n, p in module.model.camera_head.named_parameters() if not torch.equal(p, before[n])]
+    assert changed  # the head trained (it is frozen when pose_weight is 0: see the test above)
+
+    path = tmp_path / "ckpt" / "last.ckpt"
+    pose_free = make_module(net={"weights": str(path)})
+    assert pose_free.cameras == "predicted" and pose_free.model.weights_report.format == "aesplat"
+    assert pose_free.model.pretrained_backbone
+    for name, value in module.model.state_dict().items():
+        assert torch.equal(pose_free.model.state_dict()[name], value), name
+    with pytest.raises(ValueError, match="trained with model.net"):
+        make_module(net={"weights": str(path), "sh_degree": 1})  # another architecture: a clear error

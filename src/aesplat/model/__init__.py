@@ -34,6 +34,7 @@ from .weights import (
     load_encoder_weights,
     load_pretrained_weights,
     load_vggt_weights,
+    load_weights,
 )
 
 __all__ = [
@@ -68,5 +69,6 @@ __all__ = [
     "load_encoder_weights",
     "load_pretrained_weights",
     "load_vggt_weights",
+    "load_weights",
     "warped_color_map",
 ]

@@ -19,7 +19,7 @@ from .dpt import DepthHead
 from .encoder import EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead
 from .transformer import GeometryTransformer, TransformerConfig
-from .weights import WeightsReport, load_pretrained_weights
+from .weights import WeightsReport, load_weights
 
 log = logging.getLogger(__name__)
 
@@ -105,12 +105,16 @@ class ModelOutput:
     extrinsics  [B, Vc + Vt, 4, 4] camera-to-world in view 0's frame (view 0 is the identity), context first
     intrinsics  [B, Vc + Vt, 3, 3] normalised
     depth       [B, Vc, H, W] predicted z-depth of the context views
+    predicted_cameras  (extrinsics, intrinsics) of the camera head, as above, when the cameras above were
+                given (``forward(..., extrinsics=E, intrinsics=K)``) and target images too, so that the
+                head's predictions can be supervised (a posed warm start); else None
     """
 
     gaussians: Gaussians
     extrinsics: Tensor
     intrinsics: Tensor
     depth: Tensor
+    predicted_cameras: tuple[Tensor, Tensor] | None = None
 
     @property
     def num_context_views(self) -> int:
@@ -144,7 +148,9 @@ class AESplatModel(nn.Module):
     forward(context_images, extrinsics=E, intrinsics=K) uses the cameras E [B, V, 4, 4] (camera-to-world in
     context view 0's frame) and K [B, V, 3, 3] (normalised) instead of the camera head's, which does not run;
     V >= Vc, the first Vc are the context cameras and the rest are passed through as the target cameras.
-    Target images are then not needed (they only ever serve to predict the target cameras).
+    Target images are then not needed (they only ever serve to predict the target cameras); given as well,
+    the camera head runs on all views and its cameras come back in ``ModelOutput.predicted_cameras`` (for a
+    supervised pose loss) while the Gaussians and renders use the given ones.
     """
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -167,7 +173,7 @@ class AESplatModel(nn.Module):
         )  # fmt: skip
         self.weights_report: WeightsReport | None = None
         if cfg.weights:
-            self.weights_report = load_pretrained_weights(self.encoder, self.transformer, cfg.weights)
+            self.weights_report = load_weights(self, cfg.weights)
             log.info("loaded %d tensors from %s", len(self.weights_report.loaded), self.weights_report.path)
 
     @property
@@ -179,7 +185,11 @@ class AESplatModel(nn.Module):
     def pretrained_backbone(self) -> bool:
         """Whether pretrained encoder weights were loaded (training gives them a lower learning rate)."""
         report = self.weights_report
-        return report is not None and any(not k.startswith("transformer.") for k in report.loaded)
+        if report is None:
+            return False
+        if report.format == "aesplat":
+            return any(k.startswith("encoder.") for k in report.loaded)
+        return any(not k.startswith("transformer.") for k in report.loaded)
 
     def transformer_blocks(self) -> list[nn.Module]:
         """Every encoder, frame and global block: the units that ``compile_blocks`` compiles."""
@@ -246,9 +256,12 @@ class AESplatModel(nn.Module):
     ) -> ModelOutput:
         self._check_inputs(context_images, target_images)
         self._check_cameras(context_images, extrinsics, intrinsics)
-        if extrinsics is not None:
-            target_images = None  # the camera head does not run: target views would be computed for nothing
         b, vc, _, h, w = context_images.shape
+        views = vc + (0 if target_images is None else target_images.shape[1])
+        if extrinsics is not None and target_images is not None and extrinsics.shape[1] != views:
+            raise ValueError(
+                f"with target images, give cameras for all {views} views, got {extrinsics.shape[1]}"
+            )
         images = context_images if target_images is None else torch.cat([context_images, target_images], dim=1)
         v = images.shape[1]
         grid = (h // self.cfg.encoder.patch_size, w // self.cfg.encoder.patch_size)
@@ -259,8 +272,11 @@ class AESplatModel(nn.Module):
         with torch.autocast(device_type=images.device.type, enabled=False):
             layers = [x.float() for x in layers]
             context_images = context_images.float()
+            predicted = None
             if extrinsics is None:
                 extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0])
+            elif target_images is not None:  # given cameras render; the head's are only supervised
+                predicted = self.camera_head(layers[-1][:, :, 0])
             extrinsics, intrinsics = extrinsics.float(), intrinsics.float()
             start = self.transformer.patch_start
             context_tokens = [x[:, :vc, start:].flatten(0, 1) for x in layers]  # 4 x [B·Vc, P, 2·dim]
@@ -283,7 +299,8 @@ class AESplatModel(nn.Module):
                 opacities=g.opacities.reshape(b, -1),
                 sh=sh,
             )
-        return ModelOutput(gaussians=gaussians, extrinsics=extrinsics, intrinsics=intrinsics, depth=depth)
+        return ModelOutput(gaussians=gaussians, extrinsics=extrinsics, intrinsics=intrinsics, depth=depth,
+                           predicted_cameras=predicted)  # fmt: skip
 
 
 def checkpoint_cameras(checkpoint: dict) -> str:
@@ -291,18 +308,22 @@ def checkpoint_cameras(checkpoint: dict) -> str:
     return (checkpoint.get("hyper_parameters") or {}).get("cameras", "predicted")
 
 
-def forward_batch(model: AESplatModel, batch: BatchedExample, cameras: str = "predicted") -> ModelOutput:
+def forward_batch(
+    model: AESplatModel, batch: BatchedExample, cameras: str = "predicted", predict_cameras: bool = False
+) -> ModelOutput:
     """``model`` on the views of ``batch`` with its cameras from ``cameras`` (one of ``CAMERA_SOURCES``).
 
     predicted: the camera head predicts every view's camera from the context and target images.
     dataset: the batch's own cameras, every view's pose expressed relative to context view 0; the model
-    sees the context images only.
+    sees the context images only, or, with ``predict_cameras``, all images, and its camera head's
+    predictions come back in ``predicted_cameras`` (a supervised pose loss: the posed warm start).
     """
     if cameras == "predicted":
         return model(batch.context.images, batch.target.images)
     if cameras == "dataset":
         extrinsics, intrinsics = dataset_cameras(batch)
-        return model(batch.context.images, extrinsics=extrinsics, intrinsics=intrinsics)
+        target = batch.target.images if predict_cameras else None
+        return model(batch.context.images, target, extrinsics=extrinsics, intrinsics=intrinsics)
     raise ValueError(f"unknown camera source {cameras!r}; choose one of {', '.join(CAMERA_SOURCES)}")
 
 
@@ -361,7 +382,7 @@ class NetConfig:
     sh_degree: int = 4
     near: float = 0.5
     far: float = 100.0
-    weights: str | None = None  # local DINOv2/timm or VGGT checkpoint file; never downloaded
+    weights: str | None = None  # local DINOv2/timm, VGGT or aesplat training checkpoint file; never downloaded
     options: dict[str, Any] = field(default_factory=dict)  # any other build_model keyword (rope, ...)
     compile: str = "none"  # none | blocks: torch.compile each encoder / transformer block (first steps slower)
 

@@ -1,5 +1,6 @@
-"""Loading local pretrained weights by name: DINOv2 ViT/14 encoders (timm or original format) and VGGT's
-aggregator (encoder + alternating-attention blocks). Nothing is ever downloaded.
+"""Loading local pretrained weights by name: DINOv2 ViT/14 encoders (timm or original format), VGGT's
+aggregator (encoder + alternating-attention blocks), and a whole AESplat model from a training checkpoint of
+this project (``aesplat fit``'s ``last.ckpt``, e.g. the posed warm start). Nothing is ever downloaded.
 
 Unknown and missing keys are never silently ignored: each loader returns a :class:`WeightsReport` and warns.
 """
@@ -24,7 +25,7 @@ class WeightsReport:
     """What a weights loader did: the detected format and the keys it could not match."""
 
     path: str
-    format: str  # "timm", "dinov2" or "vggt"
+    format: str  # "timm", "dinov2", "vggt" or "aesplat"
     loaded: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)  # model parameters the checkpoint lacks
     unexpected: list[str] = field(default_factory=list)  # checkpoint keys the model does not have
@@ -79,14 +80,18 @@ def _resize_pos_embed(pos: Tensor, grid: int) -> Tensor:
     return torch.cat([pos[:, :1], resize_position_grid(pos[:, 1:], (grid, grid))], dim=1)
 
 
-def _read(path: str | Path, what: str) -> dict[str, Tensor]:
+def _read_raw(path: str | Path, what: str) -> object:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(
             f"{what} weights file {path} does not exist; give the path of a local checkpoint "
-            "(.pth/.pt/.bin), or leave it unset for random initialisation"
+            "(.pth/.pt/.bin/.ckpt), or leave it unset for random initialisation"
         )
-    return _unwrap(torch.load(path, map_location="cpu", weights_only=True))
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def _read(path: str | Path, what: str) -> dict[str, Tensor]:
+    return _unwrap(_read_raw(path, what))
 
 
 def _load_matching(
@@ -180,3 +185,43 @@ def load_pretrained_weights(
     if any(k.startswith("aggregator.") for k in state):
         return _load_vggt_state(encoder, transformer, state, path)
     return _load_encoder_state(encoder, state, path)
+
+
+AESPLAT_PREFIX = "model."  # where the LightningModule keeps the AESplatModel in its state dict
+
+
+def is_aesplat_checkpoint(state: dict[str, Tensor]) -> bool:
+    """Whether a state dict is an AESplat training checkpoint's (the module's keys: ``model.camera_head.…``)."""
+    return any(k.startswith(AESPLAT_PREFIX + "camera_head.") for k in state)
+
+
+def _load_aesplat_state(
+    model: nn.Module, state: dict[str, Tensor], path: str | Path, trained_with: dict | None = None
+) -> WeightsReport:
+    """Every tensor of the checkpoint's model into ``model`` (an AESplatModel of the same architecture).
+    The module's other entries (metrics) are ignored; a shape mismatch is an error naming the checkpoint's
+    network settings (``trained_with``: its ``hyper_parameters["net"]``)."""
+    report = WeightsReport(path=str(path), format="aesplat")
+    report.ignored = sorted(k for k in state if not k.startswith(AESPLAT_PREFIX))
+    own = {k[len(AESPLAT_PREFIX) :]: v for k, v in state.items() if k.startswith(AESPLAT_PREFIX)}
+    try:
+        _load_matching(model, own, "", report)
+    except ValueError as err:
+        keys = ("size", "appearance", "sh_degree", "options")
+        settings = {k: trained_with.get(k) for k in keys} if trained_with else {}
+        raise ValueError(f"{err}. The checkpoint was trained with model.net {settings}") from None
+    _warn(report)
+    return report
+
+
+def load_weights(model: nn.Module, path: str | Path) -> WeightsReport:
+    """What ``build_model(weights=...)`` calls: an AESplat training checkpoint into the whole ``model``, else
+    (``load_pretrained_weights``) a VGGT or DINOv2 checkpoint into its encoder and geometry transformer."""
+    raw = _read_raw(path, "pretrained")  # read once: VGGT checkpoints are several GB
+    state = _unwrap(raw)
+    if is_aesplat_checkpoint(state):
+        net = ((raw.get("hyper_parameters") or {}).get("net") if isinstance(raw, dict) else None) or None
+        return _load_aesplat_state(model, state, path, net)
+    if any(k.startswith("aggregator.") for k in state):
+        return _load_vggt_state(model.encoder, model.transformer, state, path)
+    return _load_encoder_state(model.encoder, state, path)

@@ -6,6 +6,11 @@ all context views at its own camera, so the relative pose between the context vi
 own; ``blur_sigma`` / ``blur_steps`` compare blurred images early in training (coarse to fine), the blur
 shrinking linearly to none, which widens the basin of the pose gradient.
 
+``pose_weight`` adds a *supervised* camera loss (``camera_loss``: the camera head's relative poses and focal
+lengths against the data set's). It is not the method, which never sees a pose: it is the posed warm start
+(``conf/warmstart.yaml``), the small-scale analogue of the pose- and depth-supervised pre-training of the 3D
+foundation model (VGGT) that the method starts from.
+
 The LPIPS network is torchmetrics' implementation (its linear layers ship inside torchmetrics). Its VGG16
 backbone needs torchvision's ImageNet weights, which are read from the local torch hub cache and never
 downloaded. The network is held outside the module tree on purpose: it is never trained, never moved by an
@@ -35,12 +40,13 @@ class LossConfig:
     context_weight: float = 0.0  # > 0: also render the context views and add their loss with this weight
     blur_sigma: float = 0.0  # coarse to fine: Gaussian blur (pixels) of render and image at step 0 ...
     blur_steps: int = 0  # ... shrinking linearly to no blur at this step
+    pose_weight: float = 0.0  # > 0: supervise the camera head with the data set's cameras (warm start only)
 
     def __post_init__(self) -> None:
-        if self.context_weight < 0 or self.blur_sigma < 0 or self.blur_steps < 0:
+        if min(self.context_weight, self.blur_sigma, self.blur_steps, self.pose_weight) < 0:
             raise ValueError(
-                "model.loss.context_weight, blur_sigma and blur_steps must be >= 0, got "
-                f"{self.context_weight}, {self.blur_sigma}, {self.blur_steps}"
+                "model.loss.context_weight, blur_sigma, blur_steps and pose_weight must be >= 0, got "
+                f"{self.context_weight}, {self.blur_sigma}, {self.blur_steps}, {self.pose_weight}"
             )
         if self.blur_sigma > 0 and self.blur_steps == 0:
             raise ValueError("model.loss.blur_sigma > 0 needs blur_steps > 0: the step where the blur ends")
@@ -203,3 +209,23 @@ class PhotometricLoss(nn.Module):
                 total = terms["total"] + self.cfg.context_weight * extra.pop("total")
                 terms = {**terms, **extra, "total": total}
         return terms
+
+
+def camera_loss(
+    pred_extrinsics: Tensor, pred_intrinsics: Tensor, gt_extrinsics: Tensor, gt_intrinsics: Tensor
+) -> dict[str, Tensor]:
+    """Supervised camera loss (``LossConfig.pose_weight``), fp32. All extrinsics [B, V, 4, 4] camera-to-world
+    in context view 0's frame (view 0 the identity, as the camera head predicts and ``dataset_cameras``
+    gives), intrinsics [B, V, 3, 3] normalised. Terms over views 1..V-1: ``rotation``, the squared Frobenius
+    distance of the rotation matrices (smooth everywhere, 8·sin²(θ/2) for an angle θ between them);
+    ``translation``, the L1 distance of the translations (the data set's scale: the warm start renders with
+    its cameras, so depth learns that scale too); over all views ``focal``, the L1 distance of the normalised
+    focal lengths. ``total`` is their sum."""
+    with torch.autocast(pred_extrinsics.device.type, enabled=False):
+        pe, ge = pred_extrinsics[:, 1:].float(), gt_extrinsics[:, 1:].float()
+        rotation = (pe[..., :3, :3] - ge[..., :3, :3]).square().sum((-1, -2)).mean()
+        translation = (pe[..., :3, 3] - ge[..., :3, 3]).abs().sum(-1).mean()
+        focal_of = lambda k: torch.stack([k[..., 0, 0], k[..., 1, 1]], -1).float()  # noqa: E731
+        focal = (focal_of(pred_intrinsics) - focal_of(gt_intrinsics)).abs().mean()
+    return {"rotation": rotation, "translation": translation, "focal": focal,
+            "total": rotation + translation + focal}  # fmt: skip

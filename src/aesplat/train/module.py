@@ -4,7 +4,8 @@ A batch flows: context + target images -> model (masked attention: targets canno
 -> Gaussians and *predicted* cameras of all views -> render the target views with the predicted target
 cameras -> photometric loss against the real target images. Ground-truth poses are used only in metrics.
 With ``cameras="dataset"`` (posed training, not the method) the batch's own cameras replace the camera
-head's everywhere; the head is frozen and never runs.
+head's everywhere; the head is frozen and never runs, unless ``loss.pose_weight`` > 0 (the posed warm start):
+then it runs on all views and learns from a supervised camera loss.
 
 Optimization is manual so that a step with a non-finite loss or gradient is visibly skipped (parameters and
 AdamW state untouched, counted, logged) while the trainer's step counter, the schedule and the curriculum
@@ -30,13 +31,14 @@ from aesplat.model import (
     ModelOutput,
     NetConfig,
     checkpoint_cameras,
+    dataset_cameras,
     forward_batch,
 )
 from aesplat.render import render
 from aesplat.types import BatchedExample, RenderOutput
 
 from .evaluation import save_image, visual_grid, write_results
-from .loss import LossConfig, PhotometricLoss, maybe_lpips
+from .loss import LossConfig, PhotometricLoss, camera_loss, maybe_lpips
 from .metrics import highlight_psnr, overlap_bucket, psnr, relative_pose_errors, ssim
 from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates
 from .rng import restore_rng_state, rng_state
@@ -90,7 +92,8 @@ class AESplatModule(LightningModule):
         self.automatic_optimization = False
 
         self.model = net.build()
-        if cameras == "dataset":
+        self.pose_weight = loss.pose_weight
+        if cameras == "dataset" and self.pose_weight == 0:
             self.model.camera_head.requires_grad_(False)  # out of the optimizer and of DDP's gradient sync
         if loss.lpips_weight > 0 or eval.metrics_lpips:
             lpips, self.lpips_unavailable = maybe_lpips(required=loss.lpips_weight > 0)
@@ -112,12 +115,15 @@ class AESplatModule(LightningModule):
         return batch.float_images()
 
     # ----------------------------------------------------------------------------------------- forward
-    def forward(self, batch: BatchedExample, with_context: bool = False) -> tuple[ModelOutput, RenderOutput]:
+    def forward(
+        self, batch: BatchedExample, with_context: bool = False, predict_cameras: bool = False
+    ) -> tuple[ModelOutput, RenderOutput]:
         """Model outputs and the renders of the target views with the target cameras (``self.cameras``);
-        ``with_context``: the context views first, each rendered at its own camera (one render call)."""
+        ``with_context``: the context views first, each rendered at its own camera (one render call);
+        ``predict_cameras``: with the data set's cameras, run the camera head too (``forward_batch``)."""
         first = 0 if with_context else batch.context.num_views
         height, width = batch.context.image_shape
-        out = forward_batch(self.model, batch, self.cameras)
+        out = forward_batch(self.model, batch, self.cameras, predict_cameras)
         background = torch.tensor(self.render_cfg.background, device=self.device)
         rendered = render(
             out.gaussians, out.extrinsics[:, first:], out.intrinsics[:, first:], height, width,
@@ -147,13 +153,18 @@ class AESplatModule(LightningModule):
             self.log(f"lr/{name}", lr, on_step=True, on_epoch=False)
 
         with_context = self.loss_fn.renders_context
-        _, rendered = self(batch, with_context=with_context)
+        out, rendered = self(batch, with_context=with_context, predict_cameras=self.pose_weight > 0)
         context_pred = None
         if with_context:
             vc = batch.context.num_views
             context_pred, rendered = rendered.color[:, :vc], rendered.apply(lambda t: t[:, vc:])
         terms = self.loss_fn(rendered.color, batch.target.images, self.global_step, context_pred,
                              batch.context.images)  # fmt: skip
+        if self.pose_weight > 0:  # the posed warm start: the camera head against the data set's cameras
+            predicted = out.predicted_cameras or (out.extrinsics, out.intrinsics)
+            pose = camera_loss(*predicted, *dataset_cameras(batch))
+            terms["total"] = terms["total"] + self.pose_weight * pose.pop("total")
+            terms.update({f"pose_{k}": v for k, v in pose.items()})
         optimizer.zero_grad(set_to_none=True)
         # Always backward, even on a NaN loss: under DDP every rank must join the gradient all-reduce.
         self.manual_backward(terms["total"])
@@ -173,7 +184,7 @@ class AESplatModule(LightningModule):
         b = batch.batch_size
         self.log("train/loss", terms["total"], prog_bar=True, batch_size=b)
         self.log("train/mse", terms["mse"], batch_size=b)
-        for key in ("lpips", "context_mse", "context_lpips"):
+        for key in ("lpips", "context_mse", "context_lpips", "pose_rotation", "pose_translation", "pose_focal"):
             if key in terms:
                 self.log(f"train/{key}", terms[key], batch_size=b)
         with torch.no_grad():
