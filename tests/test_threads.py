@@ -147,3 +147,24 @@ def test_tuner_with_one_candidate_never_switches():
         ThreadTuner(())
     with pytest.raises(ValueError):
         ThreadTuner((1, 2), slowdown=1.0)
+
+
+def test_tuner_at_the_fewest_threads_takes_a_slowdown_as_the_new_yardstick():
+    # 1 thread wins from the start; the machine then gets busier and busier: more threads never get probed
+    # for that (only by the periodic round), and the yardstick follows the load.
+    def seconds(c, step):
+        load = 1.0 + step / 20  # ever busier
+        return {1: 0.2 * load, 2: 0.6 * load}[c]
+
+    tuner = ThreadTuner((1, 2), probe=4, settle=1, period=10_000)
+    used = drive(tuner, seconds, 400)
+    assert tuner.rounds == 1 and used[-1] == 1
+    assert used.count(2) == 1 + 4  # the first round's settling step and probe only
+
+
+def test_tuner_waits_longer_while_rounds_confirm_the_same_winner():
+    tuner = ThreadTuner((1, 2), probe=4, settle=1, period=50)
+    used = drive(tuner, lambda c, _: {1: 0.2, 2: 0.3}[c], 2000)
+    # without the back-off a round every ~55 steps (36 rounds); with it: 50, 100, 200, 400, 400, ... steps
+    assert 5 <= tuner.rounds <= 8
+    assert used.count(2) <= (tuner.rounds + 1) * 5  # 5 steps a round (one may be under way at the end)

@@ -102,9 +102,11 @@ class ThreadTuner:
     A round measures every candidate: after a switch ``settle`` steps are not counted, then ``probe`` steps
     give the candidate's median step time. The fastest wins; one within ``margin`` of it with fewer threads
     wins instead (fewer threads are the safer choice when the machine gets busy). Then the winner runs, and a
-    new round starts after ``period`` steps, or as soon as the median of the last ``probe`` steps exceeds
-    ``slowdown`` x the winner's measured time. ``observe`` takes each step's seconds and returns the count to
-    switch to, or None.
+    new round starts after ``period`` steps (doubled, up to 8x, each time a round confirms the same winner:
+    measuring the slower count costs steps), or as soon as the median of the last ``probe`` steps exceeds
+    ``slowdown`` x the winner's measured time while the winner is not the fewest threads (more contention
+    never favours more threads, so at the fewest the slower time only becomes the new yardstick).
+    ``observe`` takes each step's seconds and returns the count to switch to, or None.
     """
 
     def __init__(
@@ -127,6 +129,8 @@ class ThreadTuner:
         self._samples: list[float] = []
         self._skip = 0
         self._since_round = 0
+        self._period = period  # the current wait between rounds (backs off while the winner stays the same)
+        self._winner: int | None = None
         if len(self.candidates) > 1:
             self._start_round(measured={}, skip=settle + 1)  # the first step also pays one-off set-up
 
@@ -157,7 +161,12 @@ class ThreadTuner:
         self._since_round += 1
         recent = statistics.median(self._samples) if len(self._samples) == self.probe else None
         slowed = recent is not None and recent > self.slowdown * self._reference
-        if self._since_round >= self.period or slowed:
+        if slowed and self.current == self.candidates[0]:
+            self._reference = recent  # busier, and already at the fewest threads: nothing faster to try
+            return None
+        if slowed:
+            self._period = self.period
+        if self._since_round >= self._period or slowed:
             return self._start_round(measured={self.current: recent} if recent is not None else {})
         return None
 
@@ -176,6 +185,8 @@ class ThreadTuner:
         self.last_round = dict(self._round)
         fastest = min(self._round.values())
         best = min(c for c, t in self._round.items() if t <= fastest * (1 + self.margin))
+        self._period = min(2 * self._period, 8 * self.period) if best == self._winner else self.period
+        self._winner = best
         self._reference = self._round[best]
         self._since_round = 0
         if best == self.current:
