@@ -28,6 +28,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .metrics import rotation_angle_deg
+
 VGG16_FILE = "vgg16-397923af.pth"  # torchvision's VGG16_Weights.IMAGENET1K_V1
 
 
@@ -216,14 +218,15 @@ def camera_loss(
 ) -> dict[str, Tensor]:
     """Supervised camera loss (``LossConfig.pose_weight``), fp32. All extrinsics [B, V, 4, 4] camera-to-world
     in context view 0's frame (view 0 the identity, as the camera head predicts and ``dataset_cameras``
-    gives), intrinsics [B, V, 3, 3] normalised. Terms over views 1..V-1: ``rotation``, the squared Frobenius
-    distance of the rotation matrices (smooth everywhere, 8·sin²(θ/2) for an angle θ between them);
+    gives), intrinsics [B, V, 3, 3] normalised. Terms over views 1..V-1: ``rotation``, the angle between the
+    rotations in radians (an L1-like geodesic loss: its gradient does not vanish for the small angles of
+    nearby views, as a squared matrix distance's does; finite at zero, see ``rotation_angle_deg``);
     ``translation``, the L1 distance of the translations (the data set's scale: the warm start renders with
     its cameras, so depth learns that scale too); over all views ``focal``, the L1 distance of the normalised
     focal lengths. ``total`` is their sum."""
     with torch.autocast(pred_extrinsics.device.type, enabled=False):
         pe, ge = pred_extrinsics[:, 1:].float(), gt_extrinsics[:, 1:].float()
-        rotation = (pe[..., :3, :3] - ge[..., :3, :3]).square().sum((-1, -2)).mean()
+        rotation = torch.deg2rad(rotation_angle_deg(pe, ge)).mean()
         translation = (pe[..., :3, 3] - ge[..., :3, 3]).abs().sum(-1).mean()
         focal_of = lambda k: torch.stack([k[..., 0, 0], k[..., 1, 1]], -1).float()  # noqa: E731
         focal = (focal_of(pred_intrinsics) - focal_of(gt_intrinsics)).abs().mean()
