@@ -25,7 +25,10 @@ Runs (``--runs``; the levers are the options of issue 13, each off by default):
     coarse-to-fine   pose-free + a blur of 3 px shrinking to none over the first half of the steps
                      (``model.loss.blur_sigma``, ``model.loss.blur_steps``)
     patch-7          pose-free with 7-pixel patches (``model.net.options.patch_size``): 6x6 tokens at 42 px
-    warm-start       see README: not a run of this command (a pre-training stage is a separate fit)
+    warm-start       pose-free from the posed warm start (``model.net.weights``): first, once, a fit of
+                     ``--warm-start-config`` (conf/warmstart.yaml: the data set's cameras render, the camera
+                     head is supervised) for ``--warm-start-steps`` on a disjoint scene set (synthetic.py
+                     --seed 1, 96 training scenes, in OUT/warm-start-data), resumable; its last.ckpt starts it
 
 ``--define NAME='ARGS'`` adds a run of your own (ARGS: `aesplat fit` overrides).
 """
@@ -66,6 +69,37 @@ def lever_args(steps: int) -> dict[str, list[str]]:
         ],  # fmt: skip
         "patch-7": [*pose_free, "--model.net.options", '{"patch_size": 7}'],
     }
+
+
+WARM_START_SCENES = "--seed 1 --scenes 96 --test-scenes 8"  # disjoint from the demo's scenes (seed 0)
+
+
+def warm_start(args: argparse.Namespace) -> Path:
+    """The warm-start checkpoint: shards of a disjoint scene set, then `aesplat fit -c conf/warmstart.yaml`
+    to ``--warm-start-steps`` (continuing an interrupted fit). Returns its last.ckpt."""
+    from aesplat.cli import run_lightning
+
+    data = args.out / "warm-start-data"
+    shards = ensure_shards(data, args.size, args.warm_start_scene_args)
+    run_dir = args.out / "warm-start-pretraining"
+    last = run_dir / "checkpoints" / "last.ckpt"
+    if last.is_file() and torch_step(last) >= args.warm_start_steps:
+        return last
+    print(f"learning_curves: warm start: {args.warm_start_steps} steps of {args.warm_start_config}", flush=True)
+    run_lightning([
+        "fit", "-c", args.warm_start_config, "--data.root", str(shards), "--data.image_size", str(args.size),
+        "--trainer.default_root_dir", str(run_dir), "--trainer.max_steps", str(args.warm_start_steps),
+        "--trainer.limit_val_batches", "0", "--trainer.logger+=CSVLogger", "--trainer.logger.save_dir",
+        str(run_dir), "--trainer.logger.name", "", "--trainer.logger.version", "",
+        "--trainer.enable_progress_bar", "false", "--checkpoint.save_top_k", "0", "--ckpt_path", "last",
+    ])  # fmt: skip
+    return last
+
+
+def torch_step(checkpoint: Path) -> int:
+    import torch
+
+    return int(torch.load(checkpoint, map_location="cpu", weights_only=True).get("global_step", 0))
 
 
 def ensure_shards(data: Path, size: int, scene_args: str) -> Path:
@@ -185,9 +219,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--define", action="append", default=[], metavar="NAME=ARGS",
                         help="a run of your own: NAME='--model.key value ...'")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/curves"), help="one folder per run, the plot")
+    parser.add_argument("--warm-start-config", default="conf/warmstart.yaml", help="the warm start's config")
+    parser.add_argument("--warm-start-steps", type=int, default=2000, help="steps of the warm start (2000)")
+    parser.add_argument("--warm-start-scene-args", default=WARM_START_SCENES,
+                        help=f"data_prep/synthetic.py options of its scenes (default: {WARM_START_SCENES})")  # fmt: skip
     args = parser.parse_args(argv)
 
     runs = lever_args(args.steps)
+    runs["warm-start"] = []  # filled in below, once its checkpoint exists
     for definition in args.define:
         name, sep, overrides = definition.partition("=")
         if not sep or not name:
@@ -202,6 +241,8 @@ def main(argv: list[str] | None = None) -> int:
     from aesplat.cli import run_lightning
 
     shards = ensure_shards(args.data, args.size, args.scene_args)
+    if "warm-start" in args.runs:
+        runs["warm-start"] = [*runs["pose-free"], "--model.net.weights", str(warm_start(args))]
     for name in args.runs:
         run_dir = args.out / name
         csv_path = run_dir / "curve.csv"

@@ -55,3 +55,27 @@ def test_curves_of_pose_free_and_posed_runs_then_resume_without_reevaluating(smo
     assert resumed[3]["psnr"] != 99.0 and resumed[3]["train_seconds"] > free[2]["train_seconds"]
     assert (out / "posed" / "curve.csv").read_text() == posed_csv
     assert list(read_curve(out / "posed" / "curve.csv")[0]) == list(CURVE_COLUMNS)
+
+
+def test_warm_start_run_pretrains_once_on_other_scenes_then_starts_from_that_checkpoint(smoke_shards, tmp_path):
+    from omegaconf import OmegaConf
+
+    driver = _driver()
+    warm_config = tmp_path / "smoke_warmstart.yaml"  # the smoke model, trained as conf/warmstart.yaml trains it
+    overlay = OmegaConf.create({"model": {"cameras": "dataset", "loss": {"pose_weight": 1.0}}})
+    OmegaConf.save(OmegaConf.merge(OmegaConf.load(ROOT / "conf" / "smoke.yaml"), overlay), warm_config)
+    out = tmp_path / "curves"
+    scenes = "--seed 1 --scenes 2 --test-scenes 1 --frames 12 --height 48 --width 64"
+    argv = ["--config", str(ROOT / "conf" / "smoke.yaml"), "--data", str(smoke_shards.parent), "--size", "28",
+            "--steps", "1", "--every", "1", "--out", str(out), "--runs", "pose-free", "warm-start",
+            "--warm-start-config", str(warm_config), "--warm-start-steps", "2",
+            "--warm-start-scene-args", scenes]  # fmt: skip
+    assert driver.main(argv) == 0
+    last = out / "warm-start-pretraining" / "checkpoints" / "last.ckpt"
+    assert driver.torch_step(last) == 2
+    free, warm = read_curve(out / "pose-free" / "curve.csv"), read_curve(out / "warm-start" / "curve.csv")
+    assert warm[0]["psnr"] != free[0]["psnr"]  # step 0 is the warm-started model, not the untrained one
+    assert warm[0]["copy_mean_psnr"] == free[0]["copy_mean_psnr"]  # on the same test scenes
+    stamp = last.stat().st_mtime_ns
+    assert driver.main(argv) == 0  # finished: neither the warm start nor the curves train again
+    assert last.stat().st_mtime_ns == stamp
