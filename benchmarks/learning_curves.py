@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--warm-start-config", default="conf/warmstart.yaml", help="the warm start's config")
     parser.add_argument("--warm-start-steps", type=int, default=2000, help="steps of the warm start (2000)")
     parser.add_argument("--warm-start-scene-args", default=WARM_START_SCENES,
-                        help=f"data_prep/synthetic.py options of its scenes (default: {WARM_START_SCENES})")  # fmt: skip
+                        help=f"synthetic.py options of its scenes (default: {WARM_START_SCENES})")  # fmt: skip
     args = parser.parse_args(argv)
 
     runs = lever_args(args.steps)
