@@ -13,7 +13,9 @@
    Same data, steps and settings for every run; the seed sets the initialisation and the data order.
 3. Report, under ``--out`` (default benchmarks/ablation/): ``runs.csv`` (one line per run), ``table.csv`` and
    ``table.md`` (per set, camera source and row: mean and 95 % t-interval over seeds of PSNR on all, highlight
-   and non-highlight pixels and SSIM, and the paired per-seed difference to ``full`` with its interval), and
+   and non-highlight pixels and SSIM, and the paired per-seed difference to ``full`` with its interval; and
+   what the view-dependent part learned: the energy of the predicted higher-order SH coefficients on the test
+   scenes, measured once per finished run from its checkpoint and kept in RUN/sh_energy.json), and
    ``ablation.png`` (one panel per set and camera source).
 
 Data and checkpoints go under ``--work`` (default outputs/ablation/). The runner resumes: a run whose
@@ -37,6 +39,9 @@ ROWS = ("full", "no_gvsre", "no_wcm", "baseline_i2dc", "baseline", "i2dc_only") 
 SETS = ("specular", "diffuse")
 METRICS = ("psnr", "psnr_highlight", "psnr_rest", "ssim")
 LABELS = {"psnr": "PSNR", "psnr_highlight": "PSNR highlight", "psnr_rest": "PSNR rest", "ssim": "SSIM"}
+# What the view-dependent part learned, per run: mean over the test scenes' Gaussians of the squared SH
+# coefficients of degree >= 1 (summed over coefficients and colour channels), and that over the DC term's.
+SH_METRICS = ("sh_high", "sh_high_ratio")
 FRAMES = 32  # per scene; the config's curriculum (gaps 5..21) is the generator's suggestion for 32 frames
 # Two-sided 95 % quantiles of Student's t, by degrees of freedom (beyond 30: the normal 1.96).
 T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
@@ -171,7 +176,38 @@ def result(run: Run, work: Path, settings: Settings) -> dict | None:
     metrics = json.loads(summary.read_text())["metrics"]
     timing_file = folder / "timing.json"
     timing = json.loads(timing_file.read_text()) if timing_file.exists() else {}
-    return {**{m: metrics.get(m) for m in METRICS}, "fit_seconds": timing.get("fit_seconds")}
+    energy_file = folder / "sh_energy.json"
+    energy = json.loads(energy_file.read_text()) if energy_file.exists() else {}
+    return {**{m: metrics.get(m) for m in METRICS}, **{m: energy.get(m) for m in SH_METRICS},
+            "fit_seconds": timing.get("fit_seconds")}  # fmt: skip
+
+
+def measure_sh_energy(run: Run, work: Path) -> None:
+    """Write RUN/sh_energy.json (``SH_METRICS``) from the run's last checkpoint on its set's test scenes, with
+    the run's own config and camera source. Rows without higher orders (``i2dc_only``) get nulls."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from aesplat.data import DataModule
+    from aesplat.model import forward_batch
+    from aesplat.train import AESplatModule
+
+    folder = run.directory(work)
+    module = AESplatModule.load_from_checkpoint(folder / "checkpoints" / "last.ckpt", map_location="cpu").eval()
+    data_cfg = OmegaConf.to_container(OmegaConf.load(folder / "config.yaml"), resolve=True)["data"]
+    data = DataModule(**{**data_cfg, "num_workers": 0})
+    data.setup("test")
+    high, dc = [], []
+    with torch.no_grad():
+        for batch in data.test_dataloader():
+            sh = forward_batch(module.model, batch.float_images(), module.cameras).gaussians.sh  # [B, N, K, 3]
+            dc.append(sh[:, :, 0].square().sum(-1).mean().item())
+            if sh.shape[2] > 1:
+                high.append(sh[:, :, 1:].square().sum((-1, -2)).mean().item())
+    energy = {"sh_high": None, "sh_high_ratio": None}
+    if high:
+        energy = {"sh_high": sum(high) / len(high), "sh_high_ratio": sum(high) / max(sum(dc), 1e-12)}
+    (folder / "sh_energy.json").write_text(json.dumps(energy))
 
 
 def _check_settings(folder: Path, settings: Settings) -> None:
@@ -201,6 +237,9 @@ def table_rows(runs: list[Run], results: dict[Run, dict], rows: list[str]) -> li
             line: dict = {"set": dataset, "cameras": cameras, "row": row}
             mine = [results.get(Run(dataset, cameras, row, s)) for s in seeds]
             line["n"] = sum(m is not None for m in mine)
+            for metric in SH_METRICS:
+                values = [m.get(metric) for m in mine if m is not None]
+                line[metric], line[f"{metric}_ci"], _ = t_interval(values)
             for metric in METRICS:
                 mean, half, _ = t_interval([m.get(metric) for m in mine if m is not None])
                 line[metric], line[f"{metric}_ci"] = mean, half
@@ -250,6 +289,21 @@ def markdown(lines: list[dict], runs: list[Run], results: dict[Run, dict], setti
                 for m in METRICS
             ]  # fmt: skip
             out.append("| " + " | ".join(cells) + " |")
+    rows = list(dict.fromkeys(line["row"] for line in lines))
+    out += ["", "## What the view-dependent part learned", "",
+            "Mean over the test scenes' Gaussians of the squared SH coefficients of degree ≥ 1 (summed over "
+            "coefficients and colour channels), and its ratio to the DC term's; mean ± half-width of the "
+            "95 % t-interval over seeds (`i2dc_only` has no higher orders).", "",
+            "| set, cameras | " + " | ".join(f"`{r}`" for r in rows) + " |",
+            "| --- |" + " ---: |" * len(rows)]  # fmt: skip
+    for dataset, cameras in groups(runs):
+        mine = [line for line in lines if (line["set"], line["cameras"]) == (dataset, cameras)]
+        cells = [
+            f"{_fmt(x['sh_high'], x['sh_high_ci'], 4)} ({_fmt(x['sh_high_ratio'], None, 3)})" for x in mine
+        ]
+        kind = "posed" if cameras == "dataset" else "pose-free"
+        out.append(f"| {dataset}, {kind} | " + " | ".join(cells) + " |")
+    out += ["", "Cells: energy of degree ≥ 1 (its ratio to the DC energy)."]
     return "\n".join(out) + "\n"
 
 
@@ -287,11 +341,11 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "runs.csv", "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["set", "cameras", "row", "seed", *METRICS, "fit_seconds"])
+        writer.writerow(["set", "cameras", "row", "seed", *METRICS, *SH_METRICS, "fit_seconds"])
         for run in runs:
             if run in results:
                 r = results[run]
-                values = ["" if r.get(k) is None else r[k] for k in (*METRICS, "fit_seconds")]
+                values = ["" if r.get(k) is None else r[k] for k in (*METRICS, *SH_METRICS, "fit_seconds")]
                 writer.writerow([run.dataset, run.cameras, run.row, run.seed, *values])
     lines = table_rows(runs, results, rows)
     with open(out / "table.csv", "w", newline="") as f:
@@ -354,6 +408,14 @@ def main(argv: list[str] | None = None) -> None:
                 raise RuntimeError(f"{run} finished without {run.directory(work) / 'test' / 'summary.json'}")
         # other shards may have finished runs meanwhile: report everything on disk
         results = {run: r for run in runs if (r := result(run, work, settings)) is not None}
+    missing = [run for run in results if not (run.directory(work) / "sh_energy.json").exists()]
+    for i, run in enumerate(missing, 1):
+        print(
+            f"[sh energy {i}/{len(missing)}] {run.dataset}, {run.cameras}, {run.row}, seed {run.seed}",
+            flush=True,
+        )
+        measure_sh_energy(run, work)
+        results[run] = result(run, work, settings)
     write_report(out, runs, results, a.rows, settings)
     print(
         f"wrote {out / 'table.md'}, table.csv, runs.csv and ablation.png ({len(results)} of {len(runs)} runs)"

@@ -83,6 +83,11 @@ def test_two_run_grid_reports_and_resumes(tmp_path, monkeypatch):
     assert float(line["psnr_vs_full"]) == pytest.approx(diff, abs=1e-9)
     assert line["n"] == "1" and line["psnr_ci"] == "" and line["psnr_vs_full_ci"] == ""  # one seed: no interval
     assert "## specular set, posed" in (tmp_path / "out" / "table.md").read_text()
+    # What the view-dependent part learned: measured from each checkpoint, none for the row without it.
+    energy = {r["row"]: r for r in runs}
+    assert float(energy["full"]["sh_high"]) > 0 and float(energy["full"]["sh_high_ratio"]) > 0
+    assert energy["i2dc_only"]["sh_high"] == ""
+    assert "## What the view-dependent part learned" in (tmp_path / "out" / "table.md").read_text()
     assert (tmp_path / "out" / "ablation.png").stat().st_size > 0
     config = (work / "runs" / "specular_dataset" / "i2dc_only" / "seed0" / "config.yaml").read_text()
     assert "appearance: i2dc_only" in config and "cameras: dataset" in config
