@@ -308,27 +308,36 @@ def markdown(lines: list[dict], runs: list[Run], results: dict[Run, dict], setti
 
 
 def plot(lines: list[dict], runs: list[Run], path: Path) -> None:
-    """One panel per (set, cameras): PSNR on all / highlight / non-highlight pixels per row, with intervals."""
+    """One column per (set, cameras): PSNR on all / highlight / non-highlight pixels per row (top) and the
+    paired per-seed difference to ``full`` (bottom), each with its 95 % interval."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     panels = groups(runs)
-    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.2), squeeze=False)
-    for ax, (dataset, cameras) in zip(axes[0], panels):
+    fig, axes = plt.subplots(2, len(panels), figsize=(5.5 * len(panels), 8.0), squeeze=False)
+    for col, (dataset, cameras) in enumerate(panels):
         mine = [line for line in lines if (line["set"], line["cameras"]) == (dataset, cameras)]
-        for k, (metric, colour) in enumerate(zip(METRICS[:3], ("black", "tab:orange", "tab:blue"))):
-            xs = [i + (k - 1) * 0.22 for i in range(len(mine))]
-            ys = [line[metric] for line in mine]
-            err = [0.0 if not math.isfinite(line[f"{metric}_ci"]) else line[f"{metric}_ci"] for line in mine]
-            if any(math.isfinite(y) for y in ys):
-                ax.errorbar(xs, ys, yerr=err, fmt="o", color=colour, capsize=3, label=LABELS[metric])
-        ax.set_xticks(range(len(mine)), [line["row"] for line in mine], rotation=30, ha="right")
-        ax.set_title(group_title(dataset, cameras))
-        ax.set_ylabel("test PSNR (dB), mean and 95 % interval over seeds")
-        ax.grid(axis="y", alpha=0.3)
-        ax.legend(fontsize="small")
+        for row, suffix in enumerate(("", "_vs_full")):
+            ax = axes[row, col]
+            for k, (metric, colour) in enumerate(zip(METRICS[:3], ("black", "tab:orange", "tab:blue"))):
+                xs = [i + (k - 1) * 0.22 for i in range(len(mine))]
+                ys = [line.get(metric + suffix, math.nan) for line in mine]
+                half = [line.get(f"{metric}{suffix}_ci", math.nan) for line in mine]
+                err = [h if math.isfinite(h) else 0.0 for h in half]
+                if any(math.isfinite(y) for y in ys):
+                    ax.errorbar(xs, ys, yerr=err, fmt="o", color=colour, capsize=3, label=LABELS[metric])
+            ax.set_xticks(range(len(mine)), [line["row"] for line in mine], rotation=30, ha="right")
+            ax.grid(axis="y", alpha=0.3)
+            if row == 0:
+                ax.set_title(group_title(dataset, cameras))
+                ax.set_ylabel("test PSNR (dB), mean and 95 % interval over seeds")
+            else:
+                ax.axhline(0.0, color="grey", lw=1)
+                ax.set_ylabel("row − full, paired by seed (dB), 95 % interval")
+            if ax.lines:
+                ax.legend(fontsize="small")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
