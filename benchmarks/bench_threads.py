@@ -1,14 +1,12 @@
 """The thread policy under contention: the demo fit alone and beside one busy single-threaded process.
 
-    python benchmarks/bench_threads.py [--steps 300 --repeats 2 --variants off,pick,on]
+    python benchmarks/bench_threads.py [--steps 100 --repeats 2 --variants off,on]
 
 Runs `aesplat fit -c conf/demo.yaml` (42x42 shards made as `make demo` makes them, ``--steps`` steps, no
 validation, no logger) in a subprocess and times the whole command. Variants:
 
 - ``off``: torch's default thread count (one per core), as before the policy (``AESPLAT_THREADS`` set to it);
-- ``pick``: the policy's count (usable cores minus data-loader workers), fixed (``AESPLAT_THREADS`` set to it);
-- ``on``: the policy as `aesplat fit` applies it: that count, then whichever of it and all usable cores the
-  fit measures to be faster (``aesplat.threads.ThreadTuner``);
+- ``on``: the policy (usable cores minus data-loader workers);
 - ``N`` (a number): ``AESPLAT_THREADS=N``.
 
 Each variant runs quiet and beside ``python -c "while True: pass"``; runs are interleaved (repeat, variant,
@@ -51,9 +49,8 @@ def _env(**extra: str) -> dict[str, str]:
     return {**env, "WANDB_MODE": "disabled", "PYTHONWARNINGS": "ignore", **extra}
 
 
-def fit_seconds(shards: Path, run_dir: Path, steps: int, size: int, threads: str | None) -> tuple[float, str]:
-    """Wall time of one `aesplat fit` of the demo config (imports and start-up included), and the steps it
-    ran at each thread count when it measured them (the fit's last thread line), else ""."""
+def fit_seconds(shards: Path, run_dir: Path, steps: int, size: int, threads: str | None) -> float:
+    """Wall time of one `aesplat fit` of the demo config (imports and start-up included)."""
     cmd = [sys.executable, "-m", "aesplat.cli", "fit", "-c", "conf/demo.yaml", "--data.root", str(shards),
            "--data.image_size", str(size), "--trainer.default_root_dir", str(run_dir),
            "--trainer.max_steps", str(steps), "--trainer.logger", "false", "--trainer.enable_progress_bar",
@@ -64,27 +61,22 @@ def fit_seconds(shards: Path, run_dir: Path, steps: int, size: int, threads: str
     took = time.perf_counter() - start
     if proc.returncode != 0:
         raise SystemExit(f"fit failed:\n{proc.stderr[-4000:]}")
-    marker = "CPU threads during the fit: "
-    tuned = [line.split(marker, 1)[1] for line in proc.stderr.splitlines() if marker in line]
-    return took, (tuned[-1].split(" (")[0] + " threads") if tuned else ""
+    return took
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--steps", type=int, default=100)
     p.add_argument("--size", type=int, default=42)
     p.add_argument("--repeats", type=int, default=2)
-    p.add_argument("--variants", default="off,pick,on", help="comma list of off | pick | on | N threads")
+    p.add_argument("--variants", default="off,on", help="comma list of off | on | N threads")
     p.add_argument("--conditions", default="quiet,busy", help="comma list of quiet | busy")
     p.add_argument("--data", default=None, help="folder for the demo data (default: a temporary one)")
     a = p.parse_args()
 
     import torch
 
-    from aesplat.threads import pick_threads
-
     default_threads = str(torch.get_num_threads())  # torch's own choice in a fresh process: one per core
-    picked = str(pick_threads(num_workers=1, env=_env()).threads)  # conf/demo.yaml: one data-loader worker
     variants = a.variants.split(",")
     conditions = a.conditions.split(",")
     with tempfile.TemporaryDirectory() as tmp:
@@ -92,23 +84,22 @@ def main() -> None:
         shards = make_shards(data, a.size)
         times: dict[tuple[str, str], list[float]] = {(v, c): [] for v in variants for c in conditions}
         print(f"demo fit, {a.steps} steps at {a.size}^2, {os.cpu_count()} CPUs, torch default "
-              f"{default_threads} threads, the policy's pick {picked}\n")  # fmt: skip
-        print("| repeat | variant | condition | load avg (1 min) | wall s | steps at each thread count |\n"
-              "| --- | --- | --- | ---: | ---: | --- |")  # fmt: skip
+              f"{default_threads} threads\n")  # fmt: skip
+        print("| repeat | variant | condition | load avg (1 min) | wall s |\n| --- | --- | --- | ---: | ---: |")
         for r in range(a.repeats):
             for v in variants:
                 for c in conditions:
-                    threads = {"off": default_threads, "pick": picked, "on": None}.get(v, v)
+                    threads = {"off": default_threads, "on": None}.get(v, v)
                     load = os.getloadavg()[0]
                     busy = subprocess.Popen([sys.executable, "-c", BUSY]) if c == "busy" else None
                     try:
-                        took, tuned = fit_seconds(shards, Path(tmp) / "run", a.steps, a.size, threads)
+                        took = fit_seconds(shards, Path(tmp) / "run", a.steps, a.size, threads)
                     finally:
                         if busy is not None:
                             busy.kill()
                             busy.wait()
                     times[(v, c)].append(took)
-                    print(f"| {r} | {v} | {c} | {load:.1f} | {took:.1f} | {tuned} |", flush=True)
+                    print(f"| {r} | {v} | {c} | {load:.1f} | {took:.1f} |", flush=True)
         print("\n| variant | " + " | ".join(f"{c} (median s)" for c in conditions) + " | busy / quiet |")
         print("| --- | " + " | ".join("---:" for _ in conditions) + " | ---: |")
         for v in variants:

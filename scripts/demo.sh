@@ -6,9 +6,8 @@
 #   -> bench -> report
 #
 # The diagnostic chain (the same model trained with the data set's cameras) runs beside the method's, in the
-# background, its output in $DEMO_DIR/posed/log.txt: each fit then uses one core (the thread policy measures
-# while it trains and finds a second thread slower while the other fit runs), and the demo's wall time is about
-# that of one chain instead of two. Every stage's seconds go to $DEMO_DIR/timings.csv, then the wall time of
+# background, its output in $DEMO_DIR/posed/log.txt: each fit uses one core (the thread policy gives each one
+# thread: 2 cores - 1 data-loader worker), and the demo's wall time is about that of one chain instead of two. Every stage's seconds go to $DEMO_DIR/timings.csv, then the wall time of
 # the whole pipeline. A failing stage stops the demo with its exit status, the diagnostic included.
 set -euo pipefail
 

@@ -76,24 +76,6 @@ def test_smoke_fit_then_test_writes_checkpoint_csv_and_json(shards, tmp_path):
     assert (run_dir / "wandb_run_id").read_text() == run_id
 
 
-@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="one core: no thread count to choose")
-def test_cpu_fit_measures_both_thread_counts_and_reports_them(shards, tmp_path):
-    common = ["-c", "conf/smoke.yaml", "--data.root", str(shards), "--trainer.default_root_dir", str(tmp_path)]
-    env_threads = os.environ.pop("AESPLAT_THREADS", None)  # an explicit count would turn the measuring off
-    try:
-        proc = run_aesplat("fit", *common, "--data.num_workers", "1", "--trainer.max_steps", "24",
-                           "--trainer.limit_val_batches", "0")  # fmt: skip
-    finally:
-        if env_threads is not None:
-            os.environ["AESPLAT_THREADS"] = env_threads
-    cores = len(os.sched_getaffinity(0))
-    line = next(x for x in proc.stderr.splitlines() if "torch CPU threads during the fit" in x)
-    parts = line.split("fit: ")[1].split(" (")[0].split(", ")  # "14 at 1, 10 at 2": steps at each count
-    counts = {int(c): int(n) for n, c in (p.split(" at ") for p in parts)}
-    assert set(counts) == {cores - 1, cores} and sum(counts.values()) == 24
-    assert f"torch CPU threads: {cores - 1} (" in proc.stderr  # the policy's pick comes first
-
-
 def print_config(capsys, *args: str) -> str:
     with pytest.raises(SystemExit) as info:
         cli.main([*args, "--print_config"])

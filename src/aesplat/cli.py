@@ -8,8 +8,7 @@ fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interp
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
 and the data, the parser holds four sections: ``checkpoint`` (ModelCheckpoint: best by val/psnr),
 ``last_checkpoint`` (ModelCheckpoint: last.ckpt every N steps), ``throughput`` and ``wandb``, plus ``threads``
-(torch CPU threads; default from ``aesplat.threads``: usable cores minus ``data.num_workers``, and during a
-CPU fit the faster of that and all usable cores, measured while training). Everything
+(torch CPU threads; default from ``aesplat.threads``: usable cores minus ``data.num_workers``). Everything
 a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml,
 test/. ``--ckpt_path last`` resumes from the newest of
 checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts fresh when there is none).
@@ -48,9 +47,9 @@ def _lightning_cli():
     from lightning.pytorch.loggers import WandbLogger
 
     from aesplat.data import DataModule
-    from aesplat.threads import ThreadTuner, apply_thread_policy, tuning_candidates
+    from aesplat.threads import apply_thread_policy
     from aesplat.train import AESplatModule
-    from aesplat.train.callbacks import AdaptiveThreads, Throughput
+    from aesplat.train.callbacks import Throughput
     from aesplat.train.requeue import RequeueAtStepBoundary
     from aesplat.train.run_dir import latest_checkpoint, wandb_mode, wandb_run_id
 
@@ -92,12 +91,7 @@ def _lightning_cli():
             for key in ("checkpoint", "last_checkpoint"):
                 if cfg[key].dirpath is None:
                     cfg[key].dirpath = str(Path(run_dir) / "checkpoints")
-            processes = _local_processes(cfg.trainer)
-            apply_thread_policy(cfg.data.num_workers, cfg.threads, processes=processes)
-            self._thread_candidates = (1,)
-            if self.subcommand == "fit" and cfg.trainer.get("accelerator") in ("cpu", "auto", None):
-                workers = cfg.data.num_workers
-                self._thread_candidates = tuning_candidates(workers, cfg.threads, processes=processes)
+            apply_thread_policy(cfg.data.num_workers, cfg.threads, processes=_local_processes(cfg.trainer))
 
         def instantiate_trainer(self, **kwargs):
             cfg = self.config_init[self.subcommand]
@@ -112,9 +106,6 @@ def _lightning_cli():
                 )  # fmt: skip
             trainer = super().instantiate_trainer(**kwargs)
             trainer.callbacks.append(RequeueAtStepBoundary())  # SLURM preemption between steps only
-            tuner = ThreadTuner(getattr(self, "_thread_candidates", (1,)))
-            if tuner.active and trainer.strategy.root_device.type == "cpu":
-                trainer.callbacks.append(AdaptiveThreads(tuner))  # the faster of the policy's pick, all cores
             return trainer
 
         def before_fit(self) -> None:
