@@ -237,13 +237,10 @@ def table_rows(runs: list[Run], results: dict[Run, dict], rows: list[str]) -> li
             line: dict = {"set": dataset, "cameras": cameras, "row": row}
             mine = [results.get(Run(dataset, cameras, row, s)) for s in seeds]
             line["n"] = sum(m is not None for m in mine)
-            for metric in SH_METRICS:
-                values = [m.get(metric) for m in mine if m is not None]
-                line[metric], line[f"{metric}_ci"], _ = t_interval(values)
-            for metric in METRICS:
+            for metric in (*METRICS, *SH_METRICS):
                 mean, half, _ = t_interval([m.get(metric) for m in mine if m is not None])
                 line[metric], line[f"{metric}_ci"] = mean, half
-                if row != "full":
+                if row != "full" and metric in METRICS:
                     diff = paired_differences(results, dataset, cameras, row, seeds, metric)
                     line[f"{metric}_vs_full"], line[f"{metric}_vs_full_ci"], _ = t_interval(diff)
             lines.append(line)

@@ -83,7 +83,7 @@ def warm_start(args: argparse.Namespace) -> Path:
     shards = ensure_shards(data, args.size, args.warm_start_scene_args)
     run_dir = args.out / "warm-start-pretraining"
     last = run_dir / "checkpoints" / "last.ckpt"
-    if last.is_file() and torch_step(last) >= args.warm_start_steps:
+    if last.is_file() and checkpoint_step(last) >= args.warm_start_steps:
         return last
     print(f"learning_curves: warm start: {args.warm_start_steps} steps of {args.warm_start_config}", flush=True)
     run_lightning([
@@ -96,7 +96,8 @@ def warm_start(args: argparse.Namespace) -> Path:
     return last
 
 
-def torch_step(checkpoint: Path) -> int:
+def checkpoint_step(checkpoint: Path) -> int:
+    """The global step a Lightning checkpoint was saved at."""
     import torch
 
     return int(torch.load(checkpoint, map_location="cpu", weights_only=True).get("global_step", 0))

@@ -72,7 +72,7 @@ def test_warm_start_run_pretrains_once_on_other_scenes_then_starts_from_that_che
             "--warm-start-scene-args", scenes]  # fmt: skip
     assert driver.main(argv) == 0
     last = out / "warm-start-pretraining" / "checkpoints" / "last.ckpt"
-    assert driver.torch_step(last) == 2
+    assert driver.checkpoint_step(last) == 2
     free, warm = read_curve(out / "pose-free" / "curve.csv"), read_curve(out / "warm-start" / "curve.csv")
     assert warm[0]["psnr"] != free[0]["psnr"]  # step 0 is the warm-started model, not the untrained one
     assert warm[0]["copy_mean_psnr"] == free[0]["copy_mean_psnr"]  # on the same test scenes

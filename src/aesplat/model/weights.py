@@ -181,7 +181,13 @@ def load_pretrained_weights(
     """Load a local checkpoint, whichever of the supported kinds it is: a VGGT checkpoint (keys under
     ``aggregator.``) into the encoder and the geometry transformer, otherwise a timm or DINOv2 ViT/14 into
     the encoder. This is what ``build_model(weights=...)`` calls."""
-    state = _read(path, "pretrained")  # read once: VGGT checkpoints are several GB
+    return _load_backbone_state(encoder, transformer, _read(path, "pretrained"), path)
+
+
+def _load_backbone_state(
+    encoder: PatchEncoder, transformer: GeometryTransformer, state: dict[str, Tensor], path: str | Path
+) -> WeightsReport:
+    """A VGGT state (keys under ``aggregator.``) into encoder and transformer, else a ViT/14 into encoder."""
     if any(k.startswith("aggregator.") for k in state):
         return _load_vggt_state(encoder, transformer, state, path)
     return _load_encoder_state(encoder, state, path)
@@ -220,8 +226,6 @@ def load_weights(model: nn.Module, path: str | Path) -> WeightsReport:
     raw = _read_raw(path, "pretrained")  # read once: VGGT checkpoints are several GB
     state = _unwrap(raw)
     if is_aesplat_checkpoint(state):
-        net = ((raw.get("hyper_parameters") or {}).get("net") if isinstance(raw, dict) else None) or None
-        return _load_aesplat_state(model, state, path, net)
-    if any(k.startswith("aggregator.") for k in state):
-        return _load_vggt_state(model.encoder, model.transformer, state, path)
-    return _load_encoder_state(model.encoder, state, path)
+        hparams = raw.get("hyper_parameters") if isinstance(raw, dict) else None
+        return _load_aesplat_state(model, state, path, (hparams or {}).get("net"))
+    return _load_backbone_state(model.encoder, model.transformer, state, path)
