@@ -43,6 +43,9 @@ class ModelConfig:
     head_precision: str = "fp32"  # fp32 | bf16: the DPT trunks' convolutions under bf16 autocast
     gaussian_feature_dim: int = 64  # Gaussian-head features passed to the view-dependent head
     camera_hidden: int = 256
+    camera_correlation: bool = (
+        False  # the camera head also sees a view-0 cost volume (camera_head.ViewCorrelation)
+    )
     appearance: str = "full"
     sh_degree: int = 4
     num_context_views: int = 2  # GVSRE / WCM widths depend on it
@@ -159,7 +162,7 @@ class AESplatModel(nn.Module):
         self.encoder = PatchEncoder(cfg.encoder)
         self.transformer = GeometryTransformer(cfg.encoder.dim, cfg.transformer)
         token_dim = 2 * cfg.transformer.dim
-        self.camera_head = CameraHead(token_dim, cfg.camera_hidden)
+        self.camera_head = CameraHead(token_dim, cfg.camera_hidden, cfg.camera_correlation)
         self.depth_head = DepthHead(
             token_dim, cfg.head_features, cfg.head_channels, cfg.near, cfg.far, cfg.head_precision
         )
@@ -274,9 +277,9 @@ class AESplatModel(nn.Module):
             context_images = context_images.float()
             predicted = None
             if extrinsics is None:
-                extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0])
+                extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0], images)
             elif target_images is not None:  # given cameras render; the head's are only supervised
-                predicted = self.camera_head(layers[-1][:, :, 0])
+                predicted = self.camera_head(layers[-1][:, :, 0], images)
             extrinsics, intrinsics = extrinsics.float(), intrinsics.float()
             start = self.transformer.patch_start
             context_tokens = [x[:, :vc, start:].flatten(0, 1) for x in layers]  # 4 x [B·Vc, P, 2·dim]
