@@ -159,6 +159,9 @@ def test_camera_loss_is_zero_at_the_truth_and_measures_each_part():
     assert float(terms["focal"]) == pytest.approx(0.05, rel=1e-5)
     parts = sum(float(terms[k]) for k in ("rotation", "translation", "focal"))
     assert float(terms["total"]) == pytest.approx(parts)
+    weighted = camera_loss(pred_e, pred_k, gt_e, gt_k, rotation_weight=10.0)
+    assert float(weighted["rotation"]) == pytest.approx(theta, rel=1e-4)  # the reported term is unweighted
+    assert float(weighted["total"]) == pytest.approx(parts + 9 * float(terms["rotation"]))
 
 
 def test_camera_loss_gradient_is_finite_at_the_truth():
@@ -169,6 +172,7 @@ def test_camera_loss_gradient_is_finite_at_the_truth():
     assert torch.isfinite(pred_e.grad).all() and torch.isfinite(k.grad).all()
 
 
-def test_pose_weight_must_not_be_negative():
-    with pytest.raises(ValueError, match="pose_weight"):
-        LossConfig(pose_weight=-1.0)
+@pytest.mark.parametrize("field", ["pose_weight", "pose_rotation_weight"])
+def test_pose_weights_must_not_be_negative(field):
+    with pytest.raises(ValueError, match="pose_rotation_weight must be >= 0"):
+        LossConfig(**{field: -1.0})

@@ -43,12 +43,21 @@ class LossConfig:
     blur_sigma: float = 0.0  # coarse to fine: Gaussian blur (pixels) of render and image at step 0 ...
     blur_steps: int = 0  # ... shrinking linearly to no blur at this step
     pose_weight: float = 0.0  # > 0: supervise the camera head with the data set's cameras (warm start only)
+    pose_rotation_weight: float = 1.0  # weight of the rotation term (radians) inside that camera loss
 
     def __post_init__(self) -> None:
-        if min(self.context_weight, self.blur_sigma, self.blur_steps, self.pose_weight) < 0:
+        values = (
+            self.context_weight,
+            self.blur_sigma,
+            self.blur_steps,
+            self.pose_weight,
+            self.pose_rotation_weight,
+        )
+        if min(values) < 0:
             raise ValueError(
-                "model.loss.context_weight, blur_sigma, blur_steps and pose_weight must be >= 0, got "
-                f"{self.context_weight}, {self.blur_sigma}, {self.blur_steps}, {self.pose_weight}"
+                "model.loss.context_weight, blur_sigma, blur_steps, pose_weight and pose_rotation_weight must "
+                "be "
+                f">= 0, got {', '.join(str(v) for v in values)}"
             )
         if self.blur_sigma > 0 and self.blur_steps == 0:
             raise ValueError("model.loss.blur_sigma > 0 needs blur_steps > 0: the step where the blur ends")
@@ -214,7 +223,11 @@ class PhotometricLoss(nn.Module):
 
 
 def camera_loss(
-    pred_extrinsics: Tensor, pred_intrinsics: Tensor, gt_extrinsics: Tensor, gt_intrinsics: Tensor
+    pred_extrinsics: Tensor,
+    pred_intrinsics: Tensor,
+    gt_extrinsics: Tensor,
+    gt_intrinsics: Tensor,
+    rotation_weight: float = 1.0,
 ) -> dict[str, Tensor]:
     """Supervised camera loss (``LossConfig.pose_weight``), fp32. All extrinsics [B, V, 4, 4] camera-to-world
     in context view 0's frame (view 0 the identity, as the camera head predicts and ``dataset_cameras``
@@ -223,7 +236,7 @@ def camera_loss(
     nearby views, as a squared matrix distance's does; finite at zero, see ``rotation_angle_deg``);
     ``translation``, the L1 distance of the translations (the data set's scale: the warm start renders with
     its cameras, so depth learns that scale too); over all views ``focal``, the L1 distance of the normalised
-    focal lengths. ``total`` is their sum."""
+    focal lengths. ``total`` is their sum, the rotation term times ``rotation_weight``."""
     with torch.autocast(pred_extrinsics.device.type, enabled=False):
         pe, ge = pred_extrinsics[:, 1:].float(), gt_extrinsics[:, 1:].float()
         rotation = torch.deg2rad(rotation_angle_deg(pe, ge)).mean()
@@ -231,4 +244,4 @@ def camera_loss(
         focal_of = lambda k: torch.stack([k[..., 0, 0], k[..., 1, 1]], -1).float()  # noqa: E731
         focal = (focal_of(pred_intrinsics) - focal_of(gt_intrinsics)).abs().mean()
     return {"rotation": rotation, "translation": translation, "focal": focal,
-            "total": rotation + translation + focal}  # fmt: skip
+            "total": rotation_weight * rotation + translation + focal}  # fmt: skip

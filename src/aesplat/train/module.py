@@ -92,7 +92,7 @@ class AESplatModule(LightningModule):
         self.automatic_optimization = False
 
         self.model = net.build()
-        self.pose_weight = loss.pose_weight
+        self.pose_weight, self.pose_rotation_weight = loss.pose_weight, loss.pose_rotation_weight
         if cameras == "dataset" and self.pose_weight == 0:
             self.model.camera_head.requires_grad_(False)  # out of the optimizer and of DDP's gradient sync
         if loss.lpips_weight > 0 or eval.metrics_lpips:
@@ -162,7 +162,7 @@ class AESplatModule(LightningModule):
                              batch.context.images)  # fmt: skip
         if self.pose_weight > 0:  # the posed warm start: the camera head against the data set's cameras
             predicted = out.predicted_cameras or (out.extrinsics, out.intrinsics)
-            pose = camera_loss(*predicted, *dataset_cameras(batch))
+            pose = camera_loss(*predicted, *dataset_cameras(batch), self.pose_rotation_weight)
             terms["total"] = terms["total"] + self.pose_weight * pose.pop("total")
             terms.update({f"pose_{k}": v for k, v in pose.items()})
         optimizer.zero_grad(set_to_none=True)
