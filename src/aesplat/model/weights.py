@@ -229,3 +229,23 @@ def load_weights(model: nn.Module, path: str | Path) -> WeightsReport:
         hparams = raw.get("hyper_parameters") if isinstance(raw, dict) else None
         return _load_aesplat_state(model, state, path, (hparams or {}).get("net"))
     return _load_backbone_state(model.encoder, model.transformer, state, path)
+
+
+def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> Path:
+    """Write the model part of an ``aesplat fit`` checkpoint to ``out``: the model's tensors (fp32, the
+    module's ``model.`` keys, nothing of the optimizer, metrics or loops) and the run's hyper-parameters, which
+    ``model.net.weights`` loads like the checkpoint itself (about a third of its size). ``note`` is kept
+    beside them (e.g. the command that made it)."""
+    raw = _read_raw(checkpoint, "training")
+    state = _unwrap(raw)
+    if not is_aesplat_checkpoint(state):
+        raise ValueError(
+            f"{checkpoint} is not an `aesplat fit` checkpoint (no {AESPLAT_PREFIX}camera_head.* keys)"
+        )
+    model_state = {k: v.detach().float().clone() for k, v in state.items() if k.startswith(AESPLAT_PREFIX)}
+    hparams = raw.get("hyper_parameters", {}) if isinstance(raw, dict) else {}
+    step = raw.get("global_step") if isinstance(raw, dict) else None
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"state_dict": model_state, "hyper_parameters": hparams, "global_step": step, "note": note}, out)
+    return out
