@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """Learning curves: what accuracy costs in training time, pose-free against posed, and each lever's curve.
 
-    python benchmarks/learning_curves.py [--config conf/demo.yaml] [--data outputs/demo] [--size 42]
-        [--steps 20000] [--every 500] [--runs pose-free posed ...] [--define NAME='--model.x 1 ...']
+    python benchmarks/learning_curves.py [--config conf/demo_from_scratch.yaml] [--data outputs/demo]
+        [--size 42] [--steps 20000] [--every 500] [--runs pose-free posed ...] [--define NAME='--model.x 1 ...']
         [--out outputs/curves] [-- extra `aesplat fit` overrides for every run]
 
 Trains each named run with `aesplat fit` (in this process, one after the other, same config and seed) and
@@ -25,10 +25,13 @@ Runs (``--runs``; the levers are the options of issue 13, each off by default):
     coarse-to-fine   pose-free + a blur of 3 px shrinking to none over the first half of the steps
                      (``model.loss.blur_sigma``, ``model.loss.blur_steps``)
     patch-7          pose-free with 7-pixel patches (``model.net.options.patch_size``): 6x6 tokens at 42 px
+    correlation      pose-free with the camera head's view-0 cost volume
+                     (``model.net.options.camera_correlation``)
     warm-start       pose-free from the posed warm start (``model.net.weights``): first, once, a fit of
                      ``--warm-start-config`` (conf/warmstart.yaml: the data set's cameras render, the camera
                      head is supervised) for ``--warm-start-steps`` on a disjoint scene set (synthetic.py
-                     --seed 1, 96 training scenes, in OUT/warm-start-data), resumable; its last.ckpt starts it
+                     --seed 1, 96 training scenes, in OUT/warm-start-data), resumable; its last.ckpt starts it,
+                     with the correlation branch and lr 1e-4 (``WARM_START_FINE_TUNE``, as conf/demo.yaml)
 
 ``--define NAME='ARGS'`` adds a run of your own (ARGS: `aesplat fit` overrides).
 """
@@ -68,10 +71,15 @@ def lever_args(steps: int) -> dict[str, list[str]]:
             str(max(1, steps // 2)),
         ],  # fmt: skip
         "patch-7": [*pose_free, "--model.net.options", '{"patch_size": 7}'],
+        "correlation": [*pose_free, "--model.net.options", '{"camera_correlation": true}'],
     }
 
 
 WARM_START_SCENES = "--seed 1 --scenes 96 --test-scenes 8"  # disjoint from the demo's scenes (seed 0)
+# The pose-free stage from the warm start, as conf/demo.yaml sets it: its network (the camera head's correlation
+# branch) and a learning rate five times lower than from scratch (at 5e-4 it loses the warm start's rotations).
+WARM_START_FINE_TUNE = ["--model.net.options", '{"camera_correlation": true}', "--model.optim.lr", "1e-4",
+                        "--model.optim.appearance_lr", "2e-4"]  # fmt: skip
 
 
 def warm_start(args: argparse.Namespace) -> Path:
@@ -210,7 +218,9 @@ def main(argv: list[str] | None = None) -> int:
         i = argv.index("--")
         argv, extra = argv[:i], argv[i + 1 :]
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", default="conf/demo.yaml", help="`aesplat fit` config of every run")
+    parser.add_argument(
+        "--config", default="conf/demo_from_scratch.yaml", help="`aesplat fit` config of every run"
+    )
     parser.add_argument("--data", type=Path, default=Path("outputs/demo"), help="shards under DATA/shards")
     parser.add_argument("--size", type=int, default=42, help="image side of the shards and of the model input")
     parser.add_argument("--scene-args", default="", help="data_prep/synthetic.py options when making shards")
@@ -221,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="a run of your own: NAME='--model.key value ...'")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/curves"), help="one folder per run, the plot")
     parser.add_argument("--warm-start-config", default="conf/warmstart.yaml", help="the warm start's config")
-    parser.add_argument("--warm-start-steps", type=int, default=2000, help="steps of the warm start (2000)")
+    parser.add_argument("--warm-start-steps", type=int, default=8000, help="steps of the warm start (8000)")
     parser.add_argument("--warm-start-scene-args", default=WARM_START_SCENES,
                         help=f"synthetic.py options of its scenes (default: {WARM_START_SCENES})")  # fmt: skip
     args = parser.parse_args(argv)
@@ -243,7 +253,12 @@ def main(argv: list[str] | None = None) -> int:
 
     shards = ensure_shards(args.data, args.size, args.scene_args)
     if "warm-start" in args.runs:
-        runs["warm-start"] = [*runs["pose-free"], "--model.net.weights", str(warm_start(args))]
+        runs["warm-start"] = [
+            *runs["pose-free"],
+            "--model.net.weights",
+            str(warm_start(args)),
+            *WARM_START_FINE_TUNE,
+        ]
     for name in args.runs:
         run_dir = args.out / name
         csv_path = run_dir / "curve.csv"

@@ -4,6 +4,8 @@ import importlib.util
 import math
 from pathlib import Path
 
+import torch
+
 from aesplat.train.curves import CURVE_COLUMNS, read_curve, write_curve
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -62,7 +64,8 @@ def test_warm_start_run_pretrains_once_on_other_scenes_then_starts_from_that_che
 
     driver = _driver()
     warm_config = tmp_path / "smoke_warmstart.yaml"  # the smoke model, trained as conf/warmstart.yaml trains it
-    overlay = OmegaConf.create({"model": {"cameras": "dataset", "loss": {"pose_weight": 1.0}}})
+    net, loss = {"options": {"camera_correlation": True}}, {"pose_weight": 1.0, "pose_rotation_weight": 10.0}
+    overlay = OmegaConf.create({"model": {"cameras": "dataset", "net": net, "loss": loss}})
     OmegaConf.save(OmegaConf.merge(OmegaConf.load(ROOT / "conf" / "smoke.yaml"), overlay), warm_config)
     out = tmp_path / "curves"
     scenes = "--seed 1 --scenes 2 --test-scenes 1 --frames 12 --height 48 --width 64"
@@ -76,6 +79,10 @@ def test_warm_start_run_pretrains_once_on_other_scenes_then_starts_from_that_che
     free, warm = read_curve(out / "pose-free" / "curve.csv"), read_curve(out / "warm-start" / "curve.csv")
     assert warm[0]["psnr"] != free[0]["psnr"]  # step 0 is the warm-started model, not the untrained one
     assert warm[0]["copy_mean_psnr"] == free[0]["copy_mean_psnr"]  # on the same test scenes
+    hparams = torch.load(out / "warm-start" / "checkpoints" / "last.ckpt", weights_only=True)[
+        "hyper_parameters"
+    ]
+    assert hparams["net"]["options"] == {"camera_correlation": True} and hparams["optim"]["lr"] == 1e-4
     stamp = last.stat().st_mtime_ns
     assert driver.main(argv) == 0  # finished: neither the warm start nor the curves train again
     assert last.stat().st_mtime_ns == stamp
