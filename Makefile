@@ -115,7 +115,7 @@ curves: $(STAMP)
 
 # `make warmstart`: the weights file `make demo` starts from (weights/demo-warmstart.pt): the tiny model trained
 # with the data set's cameras and a supervised camera loss on synthetic scenes of another seed than the demo's
-# (conf/warmstart.yaml, 8,000 steps: about 40 minutes on 2 cores), then only its model tensors kept.
+# (conf/warmstart.yaml, 3,000 steps: about 15 minutes on 2 cores), then only its model tensors kept.
 WARMSTART_DIR ?= outputs/warmstart
 WARMSTART_WEIGHTS ?= weights/demo-warmstart.pt
 

@@ -231,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="a run of your own: NAME='--model.key value ...'")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/curves"), help="one folder per run, the plot")
     parser.add_argument("--warm-start-config", default="conf/warmstart.yaml", help="the warm start's config")
-    parser.add_argument("--warm-start-steps", type=int, default=8000, help="steps of the warm start (8000)")
+    parser.add_argument("--warm-start-steps", type=int, default=3000, help="steps of the warm start (3000)")
     parser.add_argument("--warm-start-scene-args", default=WARM_START_SCENES,
                         help=f"synthetic.py options of its scenes (default: {WARM_START_SCENES})")  # fmt: skip
     args = parser.parse_args(argv)

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The `make demo` pipeline; the Makefile passes its DEMO_* settings in the environment (see the Makefile).
 #
-#   synthetic scenes -> shards -> { untrained test -> fit -> trained test }   (the method)
-#                                 { untrained test -> fit -> trained test }   (diagnostic, DEMO_DIAGNOSE=1)
+#   synthetic scenes -> shards -> { step-0 test [+ random-init test] -> fit -> trained test }   (the method)
+#                                 { step-0 test -> fit -> trained test }   (diagnostic, DEMO_DIAGNOSE=1)
 #   -> bench -> report
 #
 # The diagnostic chain (the same model trained with the data set's cameras) runs beside the method's, in the
@@ -32,7 +32,7 @@ stage() { # stage NAME COMMAND...: run it, then append "NAME,seconds" to the tim
 }
 
 diagnostic() {
-    stage "diagnostic: test with the data set's cameras (untrained)" "$AESPLAT" test "${args[@]}" \
+    stage "diagnostic: test with the data set's cameras (step 0)" "$AESPLAT" test "${args[@]}" \
         --model.cameras dataset --trainer.default_root_dir "$posed/initial" --trainer.logger false
     stage "diagnostic: fit with the data set's cameras" "$AESPLAT" fit "${args[@]}" --model.cameras dataset \
         --trainer.default_root_dir "$posed/run" --trainer.logger false --trainer.enable_progress_bar false \
@@ -41,7 +41,7 @@ diagnostic() {
         --trainer.default_root_dir "$posed/run" --trainer.logger false --ckpt_path "$posed/run/checkpoints/last.ckpt"
 }
 
-rm -rf "$run" "$DEMO_DIR/initial" "$DEMO_DIR/bench" "$posed"
+rm -rf "$run" "$DEMO_DIR/initial" "$DEMO_DIR/random" "$DEMO_DIR/bench" "$posed"
 mkdir -p "$DEMO_DIR"
 echo "stage,seconds" >"$times"
 
@@ -58,14 +58,22 @@ if [[ $DEMO_DIAGNOSE == 1 ]]; then
     trap '[[ -n $diag_pid ]] && { pkill -P "$diag_pid" 2>/dev/null; kill "$diag_pid" 2>/dev/null; } || true' EXIT
 fi
 
-stage "aesplat test (untrained)" "$AESPLAT" test "${args[@]}" --trainer.default_root_dir "$DEMO_DIR/initial" \
+stage "aesplat test (step 0)" "$AESPLAT" test "${args[@]}" --trainer.default_root_dir "$DEMO_DIR/initial" \
     --trainer.logger false
+# A config that starts from weights (conf/demo.yaml: the warm start of `make warmstart`) is also tested from a
+# random initialisation, the report's reference for the rotation error.
+weights=$("$PY" -c "import sys; from omegaconf import OmegaConf; print(OmegaConf.load(sys.argv[1]).model.net.get('weights') or '')" "$DEMO_CONFIG")
+if [[ -n $weights ]]; then
+    stage "aesplat test (random initialisation)" "$AESPLAT" test "${args[@]}" --model.net.weights null \
+        --trainer.default_root_dir "$DEMO_DIR/random" --trainer.logger false
+fi
 stage "aesplat fit" "$AESPLAT" fit "${args[@]}" --trainer.default_root_dir "$run" "${log[@]}" "${fit_args[@]}"
 stage "aesplat test (trained)" "$AESPLAT" test "${args[@]}" --trainer.default_root_dir "$run" \
     --trainer.logger false --ckpt_path "$ckpt"
 
 report=(--run-dir "$run" --initial "$DEMO_DIR/initial/test" --bench "$DEMO_DIR/bench" --timings "$times"
     --out "$DEMO_DIR")
+[[ -n $weights ]] && report+=(--random-init "$DEMO_DIR/random/test")
 if [[ -n $diag_pid ]]; then
     echo "demo: waiting for the diagnostic (log: $posed/log.txt)"
     if ! wait "$diag_pid"; then

@@ -56,3 +56,18 @@ def test_timings_total_is_the_wall_clock_when_stages_ran_side_by_side(tmp_path):
     assert "Training: 600 steps in 120 s (0.20 s per step" in text
     path.write_text("stage,seconds\nshards,3\naesplat fit,120\n")  # a table without the row: the stages' sum
     assert "| **total** | **123 s (2.0 min)** |" in report.timings_section(report.read_timings(path), steps=600)
+
+
+def test_a_warm_started_run_reports_the_random_start_and_the_demo_goals(tmp_path):
+    report = _report_module()
+    random_init = _summary(tmp_path / "r", 16.9, 8.8, 120.0)
+    warm, trained = _summary(tmp_path / "w", 17.2, 4.5, 6.6), _summary(tmp_path / "t", 19.5, 4.0, 6.0)
+    table = "\n".join(report.metrics_table(warm, trained, random_init))
+    assert "| random initialisation | warm start (step 0) | trained | change from the warm start |" in table
+    assert "| PSNR (dB) ↑ | 16.90 | 17.20 | 19.50 | +2.30 |" in table
+    assert "| rotation error (°) ↓ | 8.80 | 4.50 | 4.00 | -0.50 |" in table
+    assert "| PSNR (dB) ↑ | 17.20 | 19.50 | +2.30 |" in "\n".join(report.metrics_table(warm, trained))
+    text = "\n".join(report.warm_start_section(random_init, trained, {report.COPY_MEAN: 17.36}, "w.pt"))
+    assert "`w.pt`" in text and "never saw a pose" in text
+    assert "(17.36 dB): +2.14 dB" in text
+    assert "(8.80°): 4.00°, 0.45×" in text

@@ -42,10 +42,10 @@ class ViewCorrelation(nn.Module):
     of view i with the cells of view 0 around it (±3 rows, ±6 columns: ±6 and ±12 px at 42 px) forms a cost
     volume [(2·3+1)·(2·6+1) = 91, 21, 21], which two stride-2 convolutions and a linear layer turn into one
     vector per view. A dense match of this kind is what the camera token of a small, randomly initialised
-    transformer does not learn from 3×3 patch tokens (README "Demo results": supervised, its predicted
-    rotation stays constant, and a CNN on the stacked pair does no better; this cost volume halves the yaw
-    error within 1,500 probe steps). View 0's vector is zero (its pose is the identity by construction).
-    """
+    transformer does not learn from 3×3 patch tokens (``benchmarks/pose_probe.py``: supervised, the camera
+    head's held-out rotation error stays at the no-rotation 6.29°, a CNN on the stacked pair does no better,
+    and with this branch it falls to 2.82° in 2,000 steps). View 0's vector is zero (its pose is the identity
+    by construction)."""
 
     def __init__(self, hidden: int, channels: int = 16) -> None:
         super().__init__()
