@@ -1,15 +1,22 @@
-"""Import a file of ``scripts/`` (not a package) as a module, for the tests of those scripts."""
+"""Import a file of ``scripts/`` or ``benchmarks/`` (not packages) as a module, for the tests of those files."""
 
 import importlib.util
 from pathlib import Path
 from types import ModuleType
 
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPTS = ROOT / "scripts"
+BENCHMARKS = ROOT / "benchmarks"
 
 
-def load_script(name: str) -> ModuleType:
-    """``scripts/<name>.py`` as a fresh module."""
-    spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+def load_script(name: str, folder: Path = SCRIPTS) -> ModuleType:
+    """``<folder>/<name>.py`` (default ``scripts/``) as a fresh module."""
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def load_benchmark(name: str) -> ModuleType:
+    """``benchmarks/<name>.py`` as a fresh module."""
+    return load_script(name, BENCHMARKS)

@@ -1,6 +1,5 @@
 """Learning curves: benchmarks/learning_curves.py with the LearningCurve callback, on the smoke shards."""
 
-import importlib.util
 import math
 from pathlib import Path
 
@@ -8,14 +7,13 @@ import torch
 
 from aesplat.train.curves import CURVE_COLUMNS, read_curve, write_curve
 
+from ..script_loader import load_benchmark
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _driver():
-    spec = importlib.util.spec_from_file_location("learning_curves", ROOT / "benchmarks" / "learning_curves.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("learning_curves")
 
 
 def _run(driver, shards: Path, out: Path, steps: int, runs: list[str]) -> None:

@@ -1,18 +1,13 @@
 """benchmarks/pose_probe.py: the supervised relative-pose probe, on the smoke shards."""
 
 import csv
-import importlib.util
 import math
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+from ..script_loader import load_benchmark
 
 
 def _probe():
-    spec = importlib.util.spec_from_file_location("pose_probe", ROOT / "benchmarks" / "pose_probe.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("pose_probe")
 
 
 def test_probe_trains_each_variant_and_scores_the_test_views(smoke_shards, tmp_path):
