@@ -43,9 +43,7 @@ class ModelConfig:
     head_precision: str = "fp32"  # fp32 | bf16: the DPT trunks' convolutions under bf16 autocast
     gaussian_feature_dim: int = 64  # Gaussian-head features passed to the view-dependent head
     camera_hidden: int = 256
-    camera_correlation: bool = (
-        False  # the camera head also sees a view-0 cost volume (camera_head.ViewCorrelation)
-    )
+    camera_correlation: bool = False  # the camera head also sees a view-0 cost volume (ViewCorrelation)
     appearance: str = "full"
     sh_degree: int = 4
     num_context_views: int = 2  # GVSRE / WCM widths depend on it

@@ -55,9 +55,8 @@ class LossConfig:
         )
         if min(values) < 0:
             raise ValueError(
-                "model.loss.context_weight, blur_sigma, blur_steps, pose_weight and pose_rotation_weight must "
-                "be "
-                f">= 0, got {', '.join(str(v) for v in values)}"
+                "model.loss.context_weight, blur_sigma, blur_steps, pose_weight and pose_rotation_weight "
+                f"must be >= 0, got {', '.join(str(v) for v in values)}"
             )
         if self.blur_sigma > 0 and self.blur_steps == 0:
             raise ValueError("model.loss.blur_sigma > 0 needs blur_steps > 0: the step where the blur ends")
