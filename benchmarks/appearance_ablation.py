@@ -34,6 +34,8 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from aesplat.stats import t_interval
+
 REPO = Path(__file__).resolve().parents[1]
 ROWS = ("full", "no_gvsre", "no_wcm", "baseline_i2dc", "baseline", "i2dc_only")  # the paper's table order
 SETS = ("specular", "diffuse")
@@ -43,10 +45,6 @@ LABELS = {"psnr": "PSNR", "psnr_highlight": "PSNR highlight", "psnr_rest": "PSNR
 # coefficients of degree >= 1 (summed over coefficients and colour channels), and that over the DC term's.
 SH_METRICS = ("sh_high", "sh_high_ratio")
 FRAMES = 32  # per scene; the config's curriculum (gaps 5..21) is the generator's suggestion for 32 frames
-# Two-sided 95 % quantiles of Student's t, by degrees of freedom (beyond 30: the normal 1.96).
-T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
-       2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045,
-       2.042)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -74,26 +72,6 @@ class Run:
 
 
 # ----------------------------------------------------------------------------------------------- statistics
-
-
-def t_quantile_95(df: int) -> float:
-    """Two-sided 95 % quantile of Student's t with ``df`` >= 1 degrees of freedom."""
-    if df < 1:
-        raise ValueError(f"a t-interval needs at least 2 values (df >= 1), got df={df}")
-    return T95[df - 1] if df <= len(T95) else 1.96
-
-
-def t_interval(values: list[float]) -> tuple[float, float, int]:
-    """(mean, half-width of the 95 % t-interval, n) of the finite values; half-width NaN below 2 values."""
-    finite = [v for v in values if v is not None and math.isfinite(v)]
-    n = len(finite)
-    if n == 0:
-        return math.nan, math.nan, 0
-    mean = sum(finite) / n
-    if n < 2:
-        return mean, math.nan, n
-    sd = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1))
-    return mean, t_quantile_95(n - 1) * sd / math.sqrt(n), n
 
 
 def paired_differences(results: dict[Run, dict], dataset: str, cameras: str, row: str, seeds: list[int],

@@ -3,7 +3,7 @@
 
     python benchmarks/learning_curves.py [--config conf/demo_from_scratch.yaml] [--data outputs/demo]
         [--size 42] [--steps 20000] [--every 500] [--runs pose-free posed ...] [--define NAME='--model.x 1 ...']
-        [--out outputs/curves] [-- extra `aesplat fit` overrides for every run]
+        [--data-seeds 0 1 2] [--out outputs/curves] [-- extra `aesplat fit` overrides for every run]
 
 Trains each named run with `aesplat fit` (in this process, one after the other, same config and seed) and
 records, with the ``aesplat.train.curves.LearningCurve`` callback, held-out test PSNR, SSIM, rotation and
@@ -33,7 +33,10 @@ Runs (``--runs``; the levers are the options of issue 13, each off by default):
                      --seed 1, 96 training scenes, in OUT/warm-start-data), resumable; its last.ckpt starts it,
                      with the correlation branch and lr 1e-4 (``WARM_START_FINE_TUNE``, as conf/demo.yaml)
 
-``--define NAME='ARGS'`` adds a run of your own (ARGS: `aesplat fit` overrides).
+``--define NAME='ARGS'`` adds a run of your own (ARGS: `aesplat fit` overrides). ``--data-seeds 0 1 2`` trains
+every run once per data seed (``--data.seed``: which training samples are drawn, in which order; the test scenes
+and, when the run loads weights, its start stay the same) as RUN@data-seed-S, and CURVES.md adds per run the
+mean and the 95 % t-interval over the seeds of its first and last points.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from aesplat.stats import t_interval  # noqa: E402
 from aesplat.train.curves import read_curve  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,6 +79,7 @@ def lever_args(steps: int) -> dict[str, list[str]]:
     }
 
 
+SEED_TAG = "@data-seed-"  # a run trained once per --data-seeds value: pose-free@data-seed-1
 WARM_START_SCENES = "--seed 1 --scenes 96 --test-scenes 8"  # disjoint from the demo's scenes (seed 0)
 # The pose-free stage from the warm start, as conf/demo.yaml sets it: its network (the camera head's correlation
 # branch) and a learning rate five times lower than from scratch (at 5e-4 it loses the warm start's rotations).
@@ -202,6 +207,20 @@ def summary_table(curves: dict[str, list[dict[str, float]]]) -> list[str]:
             f"{f(a['rot_err_deg'], '{:.2f}')} → {f(b['rot_err_deg'], '{:.2f}')} "
             f"| {f(a['trans_err_deg'], '{:.1f}')} → {f(b['trans_err_deg'], '{:.1f}')} |"
         )
+    groups: dict[str, list[list[dict[str, float]]]] = {}
+    for name, rows in curves.items():
+        run, tag, _ = name.partition(SEED_TAG)
+        if tag and rows:
+            groups.setdefault(run, []).append(rows)
+    for run, seeded in groups.items():
+        if len(seeded) < 2:
+            continue
+        steps = max(int(rows[-1]["step"]) for rows in seeded)
+        seconds = t_interval(rows[-1]["train_seconds"] for rows in seeded)[0]
+        columns = (("psnr", "{:.2f}"), ("rot_err_deg", "{:.2f}"), ("trans_err_deg", "{:.1f}"))
+        cells = [f"{spread(seeded, key, 0, p)} → {spread(seeded, key, -1, p)}" for key, p in columns]
+        lines.append(f"| {run}, mean ± 95 % interval over {len(seeded)} data seeds | {steps} | {seconds:.0f} | "
+                     f"{seconds / steps:.2f} | {' | '.join(cells)} |")  # fmt: skip
     rows = next((r for r in curves.values() if r), [])
     if rows:
         first = rows[0]
@@ -209,6 +228,14 @@ def summary_table(curves: dict[str, list[dict[str, float]]]) -> list[str]:
                   f"mean of the context views {first['copy_mean_psnr']:.2f} dB, the better context view "
                   f"{first['copy_best_psnr']:.2f} dB."]  # fmt: skip
     return lines
+
+
+def spread(seeded: list[list[dict[str, float]]], key: str, at: int, pattern: str) -> str:
+    """Mean and half-width of the 95 % t-interval of one value (``key`` at row ``at``) over seeded curves."""
+    mean, half, _ = t_interval(rows[at][key] for rows in seeded)
+    if not math.isfinite(mean):
+        return "n/a"
+    return pattern.format(mean) + (" ± " + pattern.format(half) if math.isfinite(half) and half > 0 else "")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -229,6 +256,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--runs", nargs="+", default=["pose-free", "posed"], help="named runs, in this order")
     parser.add_argument("--define", action="append", default=[], metavar="NAME=ARGS",
                         help="a run of your own: NAME='--model.key value ...'")  # fmt: skip
+    parser.add_argument("--data-seeds", type=int, nargs="+", default=[], metavar="S",
+                        help=f"train every run once per data seed (`--data.seed S`), as RUN{SEED_TAG}S; "
+                        "CURVES.md adds each run's mean and 95 %% interval over them")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/curves"), help="one folder per run, the plot")
     parser.add_argument("--warm-start-config", default="conf/warmstart.yaml", help="the warm start's config")
     parser.add_argument("--warm-start-steps", type=int, default=3000, help="steps of the warm start (3000)")
@@ -259,19 +289,21 @@ def main(argv: list[str] | None = None) -> int:
             str(warm_start(args)),
             *WARM_START_FINE_TUNE,
         ]
-    for name in args.runs:
+    names = [f"{run}{SEED_TAG}{seed}" for run in args.runs for seed in args.data_seeds] or args.runs
+    for name in names:
         run_dir = args.out / name
         csv_path = run_dir / "curve.csv"
         if finished(csv_path, args.steps):
             print(f"learning_curves: {name}: finished ({csv_path})")
             continue
         start = time.perf_counter()
-        print(f"learning_curves: {name}: {shlex.join(runs[name] + extra)}", flush=True)
-        overrides = runs[name] + extra
+        run, _, seed = name.partition(SEED_TAG)
+        overrides = runs[run] + (["--data.seed", seed] if seed else []) + extra
+        print(f"learning_curves: {name}: {shlex.join(overrides)}", flush=True)
         run_lightning(fit_args(args.config, shards, args.size, run_dir, args.steps, args.every, overrides))
         print(f"learning_curves: {name}: done in {time.perf_counter() - start:.0f} s wall", flush=True)
 
-    curves = {name: read_curve(args.out / name / "curve.csv") for name in args.runs}
+    curves = {name: read_curve(args.out / name / "curve.csv") for name in names}
     title = f"{args.config}, {args.size} px, shards {shards}"
     plot_curves(curves, args.out / "curves.png", title)
     table = summary_table(curves)

@@ -84,3 +84,24 @@ def test_warm_start_run_pretrains_once_on_other_scenes_then_starts_from_that_che
     stamp = last.stat().st_mtime_ns
     assert driver.main(argv) == 0  # finished: neither the warm start nor the curves train again
     assert last.stat().st_mtime_ns == stamp
+
+
+def test_data_seeds_train_each_run_once_per_seed_and_report_its_interval(smoke_shards, tmp_path):
+    driver = _driver()
+    out = tmp_path / "curves"
+    argv = ["--config", str(ROOT / "conf" / "smoke.yaml"), "--data", str(smoke_shards.parent), "--size", "28",
+            "--steps", "1", "--every", "1", "--out", str(out), "--runs", "pose-free",
+            "--data-seeds", "0", "1"]  # fmt: skip
+    assert driver.main(argv) == 0
+    curves = [read_curve(out / f"pose-free@data-seed-{seed}" / "curve.csv") for seed in (0, 1)]
+    assert not (out / "pose-free").exists()
+    assert curves[0][0]["psnr"] == curves[1][0]["psnr"]  # the same model at step 0 ...
+    assert curves[0][1]["psnr"] != curves[1][1]["psnr"]  # ... trained on other samples
+    for seed in (0, 1):
+        state = torch.load(out / f"pose-free@data-seed-{seed}" / "checkpoints" / "last.ckpt", weights_only=True)
+        assert state["DataModule"]["seed"] == seed
+    table = (out / "CURVES.md").read_text()
+    mean, half, n = driver.t_interval([rows[-1]["psnr"] for rows in curves])
+    assert n == 2 and half > 0
+    assert "| pose-free, mean ± 95 % interval over 2 data seeds | 1 |" in table
+    assert f"→ {mean:.2f} ± {half:.2f} |" in table
