@@ -277,6 +277,9 @@ def warm_start_section(
         "served only to score it.",
         "",
     ]
+    made = weights_provenance(weights)
+    if made:
+        lines += [made, ""]
     if mean_copy is not None:
         over = trained["metrics"]["psnr"] - mean_copy
         lines.append(f"- PSNR against copying the mean of the context views ({mean_copy:.2f} dB): "
@@ -285,6 +288,22 @@ def warm_start_section(
         lines.append(f"- rotation error against the randomly initialised model's ({rot0:.2f}°): {rot1:.2f}°, "
                      f"{rot1 / rot0:.2f}× (the demo's goal: at most 0.5×)")  # fmt: skip
     return lines + [""]
+
+
+def weights_provenance(weights: str) -> str:
+    """How a weights file of scripts/export_weights.py was made (its note and training step), or ""."""
+    path = Path(weights)
+    if not path.is_file():
+        return ""
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # noqa: BLE001 - a file this cannot read simply has no provenance to show
+        return ""
+    note = raw.get("note") if isinstance(raw, dict) else None
+    if not note:
+        return ""
+    step = raw.get("global_step")
+    return f"The weights file says how it was made: {note}" + (f", {step:,} training steps." if step else ".")
 
 
 def bucket_table(initial: dict, trained: dict, start: str = "untrained") -> list[str]:

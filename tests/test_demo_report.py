@@ -3,6 +3,8 @@
 import json
 from pathlib import Path
 
+import torch
+
 from .script_loader import load_script
 
 
@@ -71,3 +73,15 @@ def test_a_warm_started_run_reports_the_random_start_and_the_demo_goals(tmp_path
     assert "`w.pt`" in text and "never saw a pose" in text
     assert "(17.36 dB): +2.14 dB" in text
     assert "(8.80°): 4.00°, 0.45×" in text
+
+
+def test_the_warm_start_section_says_how_the_weights_file_was_made(tmp_path):
+    report = _report_module()
+    weights = tmp_path / "w.pt"
+    torch.save(
+        {"state_dict": {}, "hyper_parameters": {}, "global_step": 8000, "note": "make warmstart (x)"}, weights
+    )
+    random_init, trained = _summary(tmp_path / "r", 16.9, 8.8, 120.0), _summary(tmp_path / "t", 19.5, 4.0, 6.0)
+    text = "\n".join(report.warm_start_section(random_init, trained, {}, str(weights)))
+    assert "how it was made: make warmstart (x), 8,000 training steps." in text
+    assert "how it was made" not in "\n".join(report.warm_start_section(random_init, trained, {}, "missing.pt"))
