@@ -30,8 +30,9 @@ Runs (``--runs``; the levers are the options of issue 13, each off by default):
     warm-start       pose-free from the posed warm start (``model.net.weights``): first, once, a fit of
                      ``--warm-start-config`` (conf/warmstart.yaml: the data set's cameras render, the camera
                      head is supervised) for ``--warm-start-steps`` on a disjoint scene set (synthetic.py
-                     --seed 1, 96 training scenes, in OUT/warm-start-data), resumable; its last.ckpt starts it,
-                     with the correlation branch and lr 1e-4 (``WARM_START_FINE_TUNE``, as conf/demo.yaml)
+                     --seed 1, 1,536 training scenes, in OUT/warm-start-data), resumable; its last.ckpt
+                     starts it, with the correlation branch and lr 1e-4 (``WARM_START_FINE_TUNE``, as
+                     conf/demo.yaml)
 
 ``--define NAME='ARGS'`` adds a run of your own (ARGS: `aesplat fit` overrides). ``--data-seeds 0 1 2`` trains
 every run once per data seed (``--data.seed``: which training samples are drawn, in which order; the test scenes
@@ -80,7 +81,7 @@ def lever_args(steps: int) -> dict[str, list[str]]:
 
 
 SEED_TAG = "@data-seed-"  # a run trained once per --data-seeds value: pose-free@data-seed-1
-WARM_START_SCENES = "--seed 1 --scenes 96 --test-scenes 8"  # disjoint from the demo's scenes (seed 0)
+WARM_START_SCENES = "--seed 1 --scenes 1536 --test-scenes 8"  # disjoint from the demo's scenes (seed 0)
 # The pose-free stage from the warm start, as conf/demo.yaml sets it: its network (the camera head's correlation
 # branch) and a learning rate five times lower than from scratch (at 5e-4 it loses the warm start's rotations).
 WARM_START_FINE_TUNE = ["--model.net.options", '{"camera_correlation": true}', "--model.optim.lr", "1e-4",
@@ -235,7 +236,8 @@ def spread(seeded: list[list[dict[str, float]]], key: str, at: int, pattern: str
     mean, half, _ = t_interval(rows[at][key] for rows in seeded)
     if not math.isfinite(mean):
         return "n/a"
-    return pattern.format(mean) + (" ± " + pattern.format(half) if math.isfinite(half) and half > 0 else "")
+    shown = pattern.format(half) if math.isfinite(half) else ""
+    return pattern.format(mean) + (f" ± {shown}" if shown and shown != pattern.format(0.0) else "")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -261,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
                         "CURVES.md adds each run's mean and 95 %% interval over them")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/curves"), help="one folder per run, the plot")
     parser.add_argument("--warm-start-config", default="conf/warmstart.yaml", help="the warm start's config")
-    parser.add_argument("--warm-start-steps", type=int, default=3000, help="steps of the warm start (3000)")
+    parser.add_argument("--warm-start-steps", type=int, default=8000, help="steps of the warm start (8000)")
     parser.add_argument("--warm-start-scene-args", default=WARM_START_SCENES,
                         help=f"synthetic.py options of its scenes (default: {WARM_START_SCENES})")  # fmt: skip
     args = parser.parse_args(argv)
