@@ -3,6 +3,9 @@
     python benchmarks/bench_train_step.py --config conf/demo.yaml                      # the CPU demo
     python benchmarks/bench_train_step.py --config conf/demo.yaml --image-size 224     # tiny model at 224^2
     python benchmarks/bench_train_step.py --config conf/re10k.yaml --device cuda       # the paper's setting
+    python benchmarks/bench_train_step.py -c conf/re10k.yaml --device cuda --set model.net.compile=none \
+        --steps 200 --losses eager.csv                                                 # record a loss curve
+    python benchmarks/bench_train_step.py -c conf/re10k.yaml --device cuda --steps 200 --compare eager.csv
 
 Builds the module, optimizer and DataModule from the config's ``model`` / ``data`` sections
 (``trainer.precision`` bf16-mixed -> bf16 autocast on CUDA), writes a few synthetic scenes as shards at the
@@ -21,11 +24,22 @@ Lightning's own loop (logging, callbacks) is not included. Prints the seconds pe
     optimizer        gradient clipping + finiteness check, AdamW step, schedule, zero_grad
 
 Stages are timed with forward hooks; on CUDA every boundary synchronises, which costs a little overlap.
+
+``--set KEY=VALUE`` changes one setting of the layered config (dotted path, YAML value), e.g.
+``--set model.net.compile=none``, ``--set model.optim.impl=foreach``, ``--set model.net.head_precision=bf16``.
+``--seed`` fixes the initial weights and the order of the data, so two runs that differ only in a speed
+setting see the same batches: ``--losses FILE`` writes every step's loss (warm-up included) as CSV and
+``--compare FILE`` prints how far this run's losses are from such a file, step by step and as means over
+windows of ``--window`` steps (bf16 and atomics make single steps differ a little; the windowed means show a
+drift).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import importlib.metadata
+import math
 import resource
 import statistics
 import sys
@@ -91,6 +105,37 @@ def load_config(paths: list[str]) -> dict:
     return merged
 
 
+def apply_overrides(cfg: dict, assignments: list[str]) -> dict:
+    """``KEY=VALUE`` assignments (dotted key, YAML value) applied to a copy of ``cfg``."""
+    out = _deep_merge(cfg, {})
+    for assignment in assignments:
+        key, sep, raw = assignment.partition("=")
+        if not sep or not key or any(not part for part in key.split(".")):
+            raise SystemExit(f"--set {assignment!r}: expected KEY=VALUE, e.g. model.net.compile=none")
+        *parents, leaf = key.split(".")
+        node = out
+        for i, part in enumerate(parents):
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise SystemExit(f"--set {assignment!r}: {'.'.join(parents[: i + 1])} is not a section")
+            child = dict(child)  # copied, so the caller's dict stays as it was
+            node[part] = child
+            node = child
+        node[leaf] = _yaml_value(raw)
+    return out
+
+
+def _yaml_value(raw: str):
+    """A YAML scalar or list; numbers YAML 1.1 reads as strings (``1e-2``, no dot) become floats."""
+    value = yaml.safe_load(raw)
+    if isinstance(value, str):
+        try:
+            return float(value) if value.strip().lower() not in ("nan", "inf", "-inf", "infinity") else value
+        except ValueError:
+            return value
+    return value
+
+
 def _deep_merge(a: dict, b: dict) -> dict:
     out = dict(a)
     for key, value in b.items():
@@ -130,6 +175,7 @@ def build(cfg: dict, args: argparse.Namespace, shards: Path, gaps: list[int], de
         data_cfg["batch_size"] = args.batch_size
     if args.num_workers is not None:
         data_cfg["num_workers"] = args.num_workers
+    data_cfg["seed"] = args.seed
     datamodule = DataModule(**data_cfg)
     pretrained = bool(getattr(module.model, "pretrained_backbone", False))
     total = max(args.warmup + args.steps, module.optim_cfg.warmup_steps + 1)
@@ -139,8 +185,12 @@ def build(cfg: dict, args: argparse.Namespace, shards: Path, gaps: list[int], de
 
 
 def run(module: AESplatModule, datamodule: DataModule, optimizer, scheduler, device: torch.device,
-        steps: int, warmup: int, autocast) -> tuple[list[dict[str, float]], list[float]]:  # fmt: skip
-    """Time ``warmup + steps`` training steps; returns per-step stage times and step times (after warm-up)."""
+        steps: int, warmup: int, autocast) -> tuple[list[dict], list[float], list[dict]]:  # fmt: skip
+    """Time ``warmup + steps`` training steps.
+
+    Returns per-step stage times and step times (after warm-up), and one record per step (warm-up included)
+    with its loss and seconds.
+    """
     clock = StageClock(device)
     model = module.model
     for stage, names in MODEL_PARTS.items():
@@ -148,7 +198,7 @@ def run(module: AESplatModule, datamodule: DataModule, optimizer, scheduler, dev
             clock.hook(getattr(model, name), stage)
     clock.hook(model, "model")
     loader = iter(datamodule.train_dataloader())
-    per_step, step_times = [], []
+    per_step, step_times, losses, records = [], [], [], []
     for i in range(warmup + steps):
         clock.step = defaultdict(float)
         t0 = clock.now()
@@ -179,6 +229,8 @@ def run(module: AESplatModule, datamodule: DataModule, optimizer, scheduler, dev
         scheduler.step()
         clock.stop("optimizer")
         took = clock.now() - t0
+        losses.append(terms["total"].detach())
+        records.append({"step": i, "warmup": int(i < warmup), "seconds": took, "skipped": int(not finite)})
         if i >= warmup:
             s = dict(clock.step)
             parts = sum(s.get(k, 0.0) for k in MODEL_PARTS)
@@ -186,7 +238,52 @@ def run(module: AESplatModule, datamodule: DataModule, optimizer, scheduler, dev
             s["render"] = s.pop("forward") - s["model (other)"] - parts
             per_step.append(s)
             step_times.append(took)
-    return per_step, step_times
+    for record, loss in zip(records, torch.stack(losses).float().tolist()):  # one device sync, at the end
+        record["loss"] = loss
+    return per_step, step_times, records
+
+
+def write_losses(path: Path, records: list[dict]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["step", "warmup", "loss", "seconds", "skipped"])
+        writer.writeheader()
+        for r in records:
+            writer.writerow({**r, "loss": repr(r["loss"]), "seconds": f"{r['seconds']:.6f}"})
+
+
+def read_losses(path: Path) -> dict[int, float]:
+    with path.open(newline="") as f:
+        return {int(row["step"]): float(row["loss"]) for row in csv.DictReader(f)}
+
+
+def compare_losses(ours: dict[int, float], reference: dict[int, float], window: int) -> dict[str, float]:
+    """How far ``ours`` is from ``reference`` over their common steps.
+
+    Per step: the largest and the median relative difference |a - b| / |b|. Over consecutive windows of
+    ``window`` steps: the largest relative difference of the windows' mean losses, and the mean loss of the
+    last window of each run.
+    """
+    steps = sorted(set(ours) & set(reference))
+    if not steps:
+        raise SystemExit("--compare: the two runs share no step")
+    finite = [s for s in steps if math.isfinite(ours[s]) and math.isfinite(reference[s])]
+    rel = [abs(ours[s] - reference[s]) / max(abs(reference[s]), 1e-12) for s in finite]
+    windows = [steps[i : i + window] for i in range(0, len(steps) - window + 1, window)] or [steps]
+    mean_a = [statistics.fmean(ours[s] for s in w) for w in windows]
+    mean_b = [statistics.fmean(reference[s] for s in w) for w in windows]
+    return {
+        "steps": len(steps),
+        "non-finite steps": len(steps) - len(finite),
+        "max relative difference, per step": max(rel, default=math.nan),
+        "median relative difference, per step": statistics.median(rel) if rel else math.nan,
+        "windows": len(windows),
+        f"max relative difference, {len(windows[0])}-step means": max(
+            abs(a - b) / max(abs(b), 1e-12) for a, b in zip(mean_a, mean_b)
+        ),
+        "last window mean loss, this run": mean_a[-1],
+        "last window mean loss, reference": mean_b[-1],
+    }
 
 
 def main() -> None:
@@ -200,9 +297,19 @@ def main() -> None:
     p.add_argument("--num-workers", type=int, default=None, help="override data.num_workers")
     p.add_argument("--scenes", type=int, default=4, help="synthetic training scenes")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: aesplat.threads)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="change one setting, e.g. model.net.compile=none (repeatable)")  # fmt: skip
+    p.add_argument("--seed", type=int, default=0, help="initial weights and data order")
+    p.add_argument("--losses", type=Path, default=None, help="write every step's loss and time here (CSV)")
+    p.add_argument("--compare", type=Path, default=None, help="compare the losses with such a CSV")
+    p.add_argument("--window", type=int, default=20, help="steps per window of --compare's means")
     args = p.parse_args()
+    if args.compare is not None and not args.compare.is_file():
+        raise SystemExit(f"--compare {args.compare}: no such file (write one first with --losses)")
+    if args.steps < 1 or args.warmup < 0 or args.window < 1:
+        raise SystemExit("--steps and --window must be at least 1, --warmup at least 0")
 
-    cfg = load_config(args.config)
+    cfg = apply_overrides(load_config(args.config), args.overrides)
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("--device cuda: CUDA is not available here")
@@ -216,16 +323,18 @@ def main() -> None:
     def autocast():
         return torch.autocast("cuda", dtype=torch.bfloat16) if bf16 else nullcontext()
 
-    torch.manual_seed(0)
     with tempfile.TemporaryDirectory() as tmp:
         size = args.image_size or (cfg.get("data") or {}).get("image_size", 224)
         shards, gaps = synthetic_shards(Path(tmp), size, args.scenes)
+        torch.manual_seed(args.seed)
         module, datamodule, optimizer, scheduler = build(cfg, args, shards, gaps, device)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
-        per_step, times = run(
+        per_step, times, records = run(
             module, datamodule, optimizer, scheduler, device, args.steps, args.warmup, autocast
         )
+    if args.losses is not None:
+        write_losses(args.losses, records)
 
     batch = datamodule.batch_size
     step = statistics.median(times)
@@ -234,7 +343,9 @@ def main() -> None:
     else:
         peak = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB (process RSS)"
     net = module.model.cfg
-    print(f"## {' + '.join(args.config)}: {precision}, {device}, {threads} torch threads\n")
+    settings = "".join(f" --set {o}" for o in args.overrides)
+    print(f"## {' + '.join(args.config)}{settings}: {precision}, {device}, {threads} torch threads\n")
+    print(f"torch {torch.__version__}{gsplat_version()}, seed {args.seed}\n")
     name = (cfg.get("model") or {}).get("net", {}).get("size")
     print(f"model {name}, SH {net.sh_degree}, {size}^2, batch {batch}, {datamodule.num_workers} workers, "
           f"{args.steps} timed steps after {args.warmup}\n")  # fmt: skip
@@ -248,6 +359,22 @@ def main() -> None:
         print(f"| {stage} | {ms:.1f} | {ms / (step * 1e3):.0%} |")
     total = statistics.median(sum(s.values()) for s in per_step) * 1e3
     print(f"| (sum of stages) | {total:.1f} | {total / (step * 1e3):.0%} |")
+    skipped = sum(r["skipped"] for r in records)
+    first, last = records[0]["loss"], records[-1]["loss"]
+    print(f"\nloss: step 0 {first:.5f}, step {len(records) - 1} {last:.5f}; {skipped} skipped steps")
+    if args.compare is not None:
+        ours = {r["step"]: r["loss"] for r in records}
+        print(f"\n| against {args.compare} | value |\n| --- | ---: |")
+        for key, value in compare_losses(ours, read_losses(args.compare), args.window).items():
+            print(f"| {key} | {value:.3g} |" if isinstance(value, float) else f"| {key} | {value} |")
+
+
+def gsplat_version() -> str:
+    """The installed gsplat's version for the header, read from its metadata (importing it may compile it)."""
+    try:
+        return f", gsplat {importlib.metadata.version('gsplat')}"
+    except importlib.metadata.PackageNotFoundError:
+        return ""
 
 
 if __name__ == "__main__":

@@ -1,0 +1,92 @@
+#!/usr/bin/env bash
+# The GPU throughput measurements of issue 17 in one command, on a machine with CUDA and gsplat:
+#
+#   bash benchmarks/gpu_throughput.sh [OUT] [PART ...]        # OUT defaults to outputs/gpu-throughput
+#
+# Parts (all by default, in this order); each writes OUT/<part>.md (and a loss curve OUT/<part>.csv):
+#   tests        the gpu-marked tests: gsplat-vs-torch parity, a CUDA fit in bf16-mixed, predict, bench
+#   render       benchmarks/bench_gsplat_overhead.py --batch 10: render(backend="gsplat") against gsplat itself
+#   eager        the paper config (conf/re10k.yaml) eager with foreach AdamW, 200 timed steps: the baseline
+#   eager-again  the same run again: how far two identical runs drift apart (the yardstick for the others)
+#   tuned        the config as shipped (regional compile, fused AdamW), compared with eager's losses
+#   bf16-heads   tuned + model.net.head_precision=bf16, compared with eager's losses
+# A part whose .md exists is skipped, so an interrupted run resumes where it stopped; delete a file to redo
+# that part. STEPS (default 200), WARMUP (5), SEED (0) and CONFIG (conf/re10k.yaml) change the runs; PYTHON
+# picks the interpreter (default .venv/bin/python, else python3).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+OUT=${1:-outputs/gpu-throughput}
+shift || true
+PARTS=${*:-}
+STEPS=${STEPS:-200}
+WARMUP=${WARMUP:-5}
+SEED=${SEED:-0}
+CONFIG=${CONFIG:-conf/re10k.yaml}
+if [[ -z ${PYTHON:-} ]]; then
+    if [[ -x .venv/bin/python ]]; then PYTHON=.venv/bin/python; else PYTHON=python3; fi
+fi
+export PYTHONUNBUFFERED=1
+ALL_PARTS="tests render eager eager-again tuned bf16-heads"
+PARTS=${PARTS:-$ALL_PARTS}
+for part in $PARTS; do
+    [[ " $ALL_PARTS " == *" $part "* ]] || {
+        echo "gpu_throughput.sh: unknown part '$part'; the parts are: $ALL_PARTS" >&2
+        exit 2
+    }
+done
+
+"$PYTHON" -c 'import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)' || {
+    echo "gpu_throughput.sh: CUDA is not available to $PYTHON; these measurements need a GPU" >&2
+    exit 2
+}
+mkdir -p "$OUT"
+"$PYTHON" - >"$OUT/versions.txt" <<'EOF'
+import importlib.metadata, subprocess, torch
+def version(name):
+    try:
+        return importlib.metadata.version(name)
+    except importlib.metadata.PackageNotFoundError:
+        return "not installed"
+commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+print(f"commit {commit or 'unknown'}; {torch.cuda.get_device_name()}; torch {torch.__version__}; "
+      f"gsplat {version('gsplat')}; lightning {version('lightning')}")
+EOF
+cat "$OUT/versions.txt"
+
+bench() {  # bench PART [bench_train_step.py options]
+    local part=$1
+    shift
+    "$PYTHON" benchmarks/bench_train_step.py -c "$CONFIG" --device cuda --steps "$STEPS" --warmup "$WARMUP" \
+        --seed "$SEED" --losses "$OUT/$part.csv" "$@"
+}
+
+run_part() {
+    case $1 in
+        tests) "$PYTHON" -m pytest -q -rs -m gpu -p no:cacheprovider ;;
+        render) "$PYTHON" benchmarks/bench_gsplat_overhead.py --batch 10 ;;
+        eager) bench eager --set model.net.compile=none --set model.optim.impl=foreach ;;
+        eager-again) bench eager-again --set model.net.compile=none --set model.optim.impl=foreach \
+            --compare "$OUT/eager.csv" ;;
+        tuned) bench tuned --compare "$OUT/eager.csv" ;;
+        bf16-heads) bench bf16-heads --set model.net.head_precision=bf16 --compare "$OUT/eager.csv" ;;
+    esac
+}
+
+for part in $PARTS; do
+    if [[ -s $OUT/$part.md ]]; then
+        echo "== $part: done before ($OUT/$part.md), skipped"
+        continue
+    fi
+    if [[ $part == eager-again || $part == tuned || $part == bf16-heads ]] && [[ ! -s $OUT/eager.csv ]]; then
+        echo "gpu_throughput.sh: $part compares with $OUT/eager.csv; run the eager part first" >&2
+        exit 2
+    fi
+    echo "== $part"
+    start=$(date +%s)
+    # The .md appears only when the part succeeded: a failed or interrupted part runs again next time.
+    run_part "$part" 2>&1 | tee "$OUT/$part.log"
+    echo "($part: $(($(date +%s) - start)) s)" | tee -a "$OUT/$part.log"
+    mv "$OUT/$part.log" "$OUT/$part.md"
+done
+echo "== all parts done: $OUT"

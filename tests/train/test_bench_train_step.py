@@ -1,0 +1,104 @@
+"""benchmarks/bench_train_step.py: config overrides, recorded loss curves and their comparison."""
+
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from ..script_loader import ROOT, load_benchmark
+
+SMOKE = str(ROOT / "conf" / "smoke.yaml")
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_benchmark("bench_train_step")
+
+
+def test_overrides_set_nested_keys_and_leave_the_config_alone(bench):
+    cfg = {"model": {"net": {"size": "tiny", "compile": "blocks"}, "optim": {"lr": 1e-4}}}
+    out = bench.apply_overrides(
+        cfg, ["model.net.compile=none", "model.optim.lr=1e-2", "data.gap_final=[2, 8]", "model.new.x=true"]
+    )
+    assert out["model"]["net"] == {"size": "tiny", "compile": "none"}
+    assert out["model"]["optim"]["lr"] == 0.01  # YAML 1.1 reads 1e-2 as a string; the override reads a number
+    assert out["data"]["gap_final"] == [2, 8]
+    assert out["model"]["new"] == {"x": True}
+    assert cfg == {"model": {"net": {"size": "tiny", "compile": "blocks"}, "optim": {"lr": 1e-4}}}
+
+
+@pytest.mark.parametrize("bad", ["model.net.compile", "=none", "model..compile=none", "model.net.size.x=1"])
+def test_bad_overrides_say_what_is_wrong(bench, bad):
+    with pytest.raises(SystemExit, match="--set"):
+        bench.apply_overrides({"model": {"net": {"size": "tiny"}}}, [bad])
+
+
+def test_compare_losses(bench):
+    ref = {0: 1.0, 1: 2.0, 2: 4.0, 3: 4.0}
+    same = bench.compare_losses(dict(ref), ref, window=2)
+    assert same["max relative difference, per step"] == 0
+    assert same["max relative difference, 2-step means"] == 0
+    ours = {0: 1.1, 1: 2.0, 2: 4.0, 3: 2.0, 4: 9.0}  # step 4 has no partner and is left out
+    out = bench.compare_losses(ours, ref, window=2)
+    assert out["steps"] == 4 and out["windows"] == 2
+    assert math.isclose(out["max relative difference, per step"], 0.5)
+    assert math.isclose(out["median relative difference, per step"], 0.05)
+    assert math.isclose(out["max relative difference, 2-step means"], 1.0 / 4.0)  # (4 + 2) / 2 = 3 vs 4
+    assert out["last window mean loss, this run"] == 3.0 and out["last window mean loss, reference"] == 4.0
+    nan = bench.compare_losses({0: math.nan, 1: 2.0}, {0: 1.0, 1: 2.0}, window=2)
+    assert nan["non-finite steps"] == 1 and nan["max relative difference, per step"] == 0
+    with pytest.raises(SystemExit, match="share no step"):
+        bench.compare_losses({5: 1.0}, ref, window=2)
+
+
+def _run(bench, monkeypatch, capsys, *args):
+    monkeypatch.setattr(
+        sys, "argv", ["bench_train_step.py", "-c", SMOKE, "--steps", "3", "--warmup", "1", *args]
+    )
+    bench.main()
+    return capsys.readouterr().out
+
+
+def test_recorded_losses_repeat_with_the_seed_and_change_without_it(bench, monkeypatch, capsys, tmp_path):
+    """The same seed gives the same losses (for-loop and foreach AdamW are bit-identical on the CPU); another
+    seed gives other weights and batches. The table and the recorded CSV agree on the step count."""
+    ref = tmp_path / "ref.csv"
+    out = _run(bench, monkeypatch, capsys, "--set", "model.optim.impl=for_loop", "--losses", str(ref))
+    assert "| seconds per step (median) |" in out and "--set model.optim.impl=for_loop" in out
+    recorded = bench.read_losses(ref)
+    assert sorted(recorded) == [0, 1, 2, 3] and all(math.isfinite(v) for v in recorded.values())
+
+    out = _run(bench, monkeypatch, capsys, "--set", "model.optim.impl=foreach", "--compare", str(ref))
+    assert "| max relative difference, per step | 0 |" in out
+
+    out = _run(bench, monkeypatch, capsys, "--seed", "1", "--compare", str(ref), "--window", "2")
+    row = next(line for line in out.splitlines() if line.startswith("| max relative difference, per step"))
+    assert float(row.split("|")[2]) > 1e-3
+
+
+def test_a_missing_reference_is_reported_before_any_work(bench, monkeypatch, capsys, tmp_path):
+    with pytest.raises(SystemExit, match="no such file"):
+        _run(bench, monkeypatch, capsys, "--compare", str(tmp_path / "absent.csv"))
+
+
+def _suite(tmp_path, *parts):
+    script = ROOT / "benchmarks" / "gpu_throughput.sh"
+    env = {**os.environ, "PYTHON": sys.executable}
+    return subprocess.run(["bash", str(script), str(tmp_path / "out"), *parts], env=env, capture_output=True,
+                          text=True, timeout=120)  # fmt: skip
+
+
+def test_the_gpu_suite_rejects_an_unknown_part_before_any_work(tmp_path):
+    done = _suite(tmp_path, "eager", "warp-drive")
+    assert done.returncode == 2 and "unknown part 'warp-drive'" in done.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message given where CUDA is missing")
+def test_the_gpu_suite_says_it_needs_cuda(tmp_path):
+    done = _suite(tmp_path)
+    assert done.returncode == 2 and "CUDA is not available" in done.stderr
+    assert not (tmp_path / "out").exists()
