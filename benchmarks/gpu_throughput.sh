@@ -9,10 +9,11 @@
 #   eager        the paper config (conf/re10k.yaml) eager with foreach AdamW, 200 timed steps: the baseline
 #   eager-again  the same run again: how far two identical runs drift apart (the yardstick for the others)
 #   tuned        the config as shipped (regional compile, fused AdamW), compared with eager's losses
-#   bf16-heads   tuned + model.net.head_precision=bf16, compared with eager's losses
+#   bf16-heads   tuned + model.net.options.head_precision=bf16, compared with eager's losses
 # A part whose .md exists is skipped, so an interrupted run resumes where it stopped; delete a file to redo
 # that part. STEPS (default 200), WARMUP (5), SEED (0) and CONFIG (conf/re10k.yaml) change the runs; PYTHON
-# picks the interpreter (default .venv/bin/python, else python3).
+# picks the interpreter (default .venv/bin/python, else python3). DEVICE=cpu runs the training parts on the
+# CPU (a rehearsal of the script with a small CONFIG; the tests and render parts need CUDA).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -23,11 +24,19 @@ STEPS=${STEPS:-200}
 WARMUP=${WARMUP:-5}
 SEED=${SEED:-0}
 CONFIG=${CONFIG:-conf/re10k.yaml}
+DEVICE=${DEVICE:-cuda}
 if [[ -z ${PYTHON:-} ]]; then
     if [[ -x .venv/bin/python ]]; then PYTHON=.venv/bin/python; else PYTHON=python3; fi
 fi
 export PYTHONUNBUFFERED=1
 ALL_PARTS="tests render eager eager-again tuned bf16-heads"
+if [[ $DEVICE == cpu ]]; then
+    PARTS=${PARTS:-eager eager-again tuned bf16-heads}
+    [[ " $PARTS " != *" tests "* && " $PARTS " != *" render "* ]] || {
+        echo "gpu_throughput.sh: the tests and render parts need CUDA (DEVICE=cpu)" >&2
+        exit 2
+    }
+fi
 PARTS=${PARTS:-$ALL_PARTS}
 for part in $PARTS; do
     [[ " $ALL_PARTS " == *" $part "* ]] || {
@@ -36,7 +45,7 @@ for part in $PARTS; do
     }
 done
 
-"$PYTHON" -c 'import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)' || {
+[[ $DEVICE == cpu ]] || "$PYTHON" -c 'import torch, sys; sys.exit(0 if torch.cuda.is_available() else 1)' || {
     echo "gpu_throughput.sh: CUDA is not available to $PYTHON; these measurements need a GPU" >&2
     exit 2
 }
@@ -49,7 +58,8 @@ def version(name):
     except importlib.metadata.PackageNotFoundError:
         return "not installed"
 commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-print(f"commit {commit or 'unknown'}; {torch.cuda.get_device_name()}; torch {torch.__version__}; "
+device = torch.cuda.get_device_name() if torch.cuda.is_available() else "no CUDA"
+print(f"commit {commit or 'unknown'}; {device}; torch {torch.__version__}; "
       f"gsplat {version('gsplat')}; lightning {version('lightning')}")
 EOF
 cat "$OUT/versions.txt"
@@ -57,7 +67,7 @@ cat "$OUT/versions.txt"
 bench() {  # bench PART [bench_train_step.py options]
     local part=$1
     shift
-    "$PYTHON" benchmarks/bench_train_step.py -c "$CONFIG" --device cuda --steps "$STEPS" --warmup "$WARMUP" \
+    "$PYTHON" benchmarks/bench_train_step.py -c "$CONFIG" --device "$DEVICE" --steps "$STEPS" --warmup "$WARMUP" \
         --seed "$SEED" --losses "$OUT/$part.csv" "$@"
 }
 
@@ -69,7 +79,7 @@ run_part() {
         eager-again) bench eager-again --set model.net.compile=none --set model.optim.impl=foreach \
             --compare "$OUT/eager.csv" ;;
         tuned) bench tuned --compare "$OUT/eager.csv" ;;
-        bf16-heads) bench bf16-heads --set model.net.head_precision=bf16 --compare "$OUT/eager.csv" ;;
+        bf16-heads) bench bf16-heads --set model.net.options.head_precision=bf16 --compare "$OUT/eager.csv" ;;
     esac
 }
 

@@ -84,9 +84,9 @@ def test_a_missing_reference_is_reported_before_any_work(bench, monkeypatch, cap
         _run(bench, monkeypatch, capsys, "--compare", str(tmp_path / "absent.csv"))
 
 
-def _suite(tmp_path, *parts):
+def _suite(tmp_path, *parts, **env_vars):
     script = ROOT / "benchmarks" / "gpu_throughput.sh"
-    env = {**os.environ, "PYTHON": sys.executable}
+    env = {**os.environ, "PYTHON": sys.executable, **env_vars}
     return subprocess.run(["bash", str(script), str(tmp_path / "out"), *parts], env=env, capture_output=True,
                           text=True, timeout=120)  # fmt: skip
 
@@ -102,3 +102,28 @@ def test_the_gpu_suite_says_it_needs_cuda(tmp_path):
     done = _suite(tmp_path)
     assert done.returncode == 2 and "CUDA is not available" in done.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_the_gpu_suite_rehearsed_on_the_cpu_resumes_and_compares(bench, tmp_path):
+    """DEVICE=cpu runs the suite's training parts: each leaves its table and loss curve, a failed part leaves
+    no table (so it runs again), a second run skips what is done, and the comparisons are against eager."""
+    rehearse = {"DEVICE": "cpu", "CONFIG": SMOKE, "STEPS": "2", "WARMUP": "0"}
+    out = tmp_path / "out"
+    failed = _suite(tmp_path, "eager", **rehearse, SEED="zero")
+    assert failed.returncode != 0 and not (out / "eager.md").exists()
+    assert "--seed: invalid int value" in (out / "eager.log").read_text()
+
+    done = _suite(tmp_path, **rehearse)
+    assert done.returncode == 0, done.stderr
+    for part in ("eager", "eager-again", "tuned", "bf16-heads"):
+        assert "| seconds per step (median) |" in (out / f"{part}.md").read_text()
+        assert sorted(bench.read_losses(out / f"{part}.csv")) == [0, 1]
+    assert "| max relative difference, per step | 0 |" in (out / "eager-again.md").read_text()
+    assert f"against {out / 'eager.csv'}" in (out / "bf16-heads.md").read_text()
+    assert "no CUDA" in (out / "versions.txt").read_text()
+
+    again = _suite(tmp_path, **rehearse)
+    assert again.returncode == 0 and again.stdout.count("done before") == 4
+
+    needs_cuda = _suite(tmp_path, "render", **rehearse)
+    assert needs_cuda.returncode == 2 and "need CUDA" in needs_cuda.stderr
