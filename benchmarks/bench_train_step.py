@@ -26,7 +26,8 @@ Lightning's own loop (logging, callbacks) is not included. Prints the seconds pe
 Stages are timed with forward hooks; on CUDA every boundary synchronises, which costs a little overlap.
 
 ``--set KEY=VALUE`` changes one setting of the layered config (dotted path, YAML value), e.g.
-``--set model.net.compile=none``, ``--set model.optim.impl=foreach``, ``--set model.net.options.head_precision=bf16``.
+``--set model.net.compile=none``, ``--set model.optim.impl=foreach``,
+``--set model.net.options.head_precision=bf16``.
 ``--seed`` fixes the initial weights and the order of the data, so two runs that differ only in a speed
 setting see the same batches: ``--losses FILE`` writes every step's loss (warm-up included) as CSV and
 ``--compare FILE`` prints how far this run's losses are from such a file, step by step and as means over
