@@ -71,13 +71,15 @@ bench() {  # bench PART [bench_train_step.py options]
         --seed "$SEED" --losses "$OUT/$part.csv" "$@"
 }
 
+# eager and eager-again must be the same run: their difference is the yardstick for the others.
+EAGER=(--set model.net.compile=none --set model.optim.impl=foreach)
+
 run_part() {
     case $1 in
         tests) "$PYTHON" -m pytest -q -rs -m gpu -p no:cacheprovider ;;
         render) "$PYTHON" benchmarks/bench_gsplat_overhead.py --batch 10 ;;
-        eager) bench eager --set model.net.compile=none --set model.optim.impl=foreach ;;
-        eager-again) bench eager-again --set model.net.compile=none --set model.optim.impl=foreach \
-            --compare "$OUT/eager.csv" ;;
+        eager) bench eager "${EAGER[@]}" ;;
+        eager-again) bench eager-again "${EAGER[@]}" --compare "$OUT/eager.csv" ;;
         tuned) bench tuned --compare "$OUT/eager.csv" ;;
         bf16-heads) bench bf16-heads --set model.net.options.head_precision=bf16 --compare "$OUT/eager.csv" ;;
     esac
