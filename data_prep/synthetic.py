@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from aesplat.data.synthetic import PRESETS, generate_dataset
+from aesplat.data.rooms import PRESETS, generate_dataset
 from aesplat.threads import apply_thread_policy
 
 

@@ -126,10 +126,10 @@ def test_every_shipped_config_parses(config, capsys):
 
 def test_predict_and_bench_dispatch(monkeypatch):
     calls = []
-    for name in ("predict", "bench"):
-        fake = types.ModuleType(f"aesplat.{name}")
+    for name, module in (("predict", "predict"), ("bench", "tradeoffs")):
+        fake = types.ModuleType(f"aesplat.{module}")
         fake.main = lambda argv, name=name: calls.append((name, list(argv)))
-        monkeypatch.setitem(sys.modules, f"aesplat.{name}", fake)
+        monkeypatch.setitem(sys.modules, f"aesplat.{module}", fake)
     cli.main(["predict", "--ckpt", "a.ckpt", "--out", "o", "x.png", "y.png"])
     cli.main(["bench", "--ckpt", "a.ckpt"])
     assert calls == [

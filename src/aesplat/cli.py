@@ -2,7 +2,7 @@
 
     aesplat fit|validate|test -c conf/FILE.yaml [-c conf/OVERLAY.yaml …] [--dotted.key value …]
     aesplat predict …     (aesplat.predict)
-    aesplat bench …       (aesplat.bench)
+    aesplat bench …       (aesplat.tradeoffs)
 
 fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
@@ -178,7 +178,7 @@ def main(argv: Sequence[str] | None = None) -> None:
 
         predict_main(argv[1:])
     elif argv and argv[0] == "bench":
-        from aesplat.bench import main as bench_main
+        from aesplat.tradeoffs import main as bench_main
 
         bench_main(argv[1:])
     else:

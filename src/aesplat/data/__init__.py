@@ -6,9 +6,9 @@
 from typing import TYPE_CHECKING
 
 from .curriculum import GapCurriculum
+from .rooms import generate_dataset, render_scene, sample_scene
 from .shards import convert_dataset, verify_shards
 from .stream import flip_views
-from .synthetic import generate_dataset, render_scene, sample_scene
 
 if TYPE_CHECKING:
     from .datamodule import DataModule

@@ -1,4 +1,5 @@
-"""The rasterizer: one interface (``render``), a registry of backends (torch, gsplat), render statistics."""
+"""The rasterizer: one interface (``render``), a registry of backends (torch, gsplat), its config section and
+settings, render statistics."""
 
 from .gsplat_backend import fold_intrinsics, reference_intrinsics
 from .interface import (
@@ -11,9 +12,11 @@ from .interface import (
     render_with_stats,
 )
 from .projection import active_sh_degree
+from .settings import RasterizerConfig
 
 __all__ = [
     "BACKENDS",
+    "RasterizerConfig",
     "RenderSettings",
     "RenderStats",
     "active_sh_degree",

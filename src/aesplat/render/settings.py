@@ -1,4 +1,5 @@
-"""Plain types of the rasterizer: the settings every backend understands and the statistics a render returns.
+"""Plain types of the rasterizer: the config section that picks it, the settings every backend understands and
+the statistics a render returns.
 
 They live apart from ``interface.py`` so that the interface and the backends both import them (and the
 backends never import the interface that dispatches to them).
@@ -6,7 +7,8 @@ backends never import the interface that dispatches to them).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,21 @@ class RenderSettings:
             raise ValueError(f"tile_size, chunk and max_elements must be positive: {self}")
         if not 0.0 < self.near < self.far:
             raise ValueError(f"need 0 < near < far, got near={self.near}, far={self.far}")
+
+
+@dataclass
+class RasterizerConfig:
+    """The rasterizer a model renders with (config section ``model.render``): which backend, the background
+    colour, and the ``RenderSettings`` fields that differ from their defaults (passed to ``render``)."""
+
+    backend: str = "auto"  # auto | torch | gsplat
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    options: dict[str, Any] = field(default_factory=dict)  # RenderSettings fields (tile_size, compile, ...)
+
+    def __post_init__(self) -> None:
+        known = {f.name for f in fields(RenderSettings)}
+        if unknown := sorted(set(self.options) - known):
+            raise ValueError(f"model.render.options: unknown key(s) {unknown}; known: {sorted(known)}")
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """Training and evaluation: LightningModule, loss, optimizer groups, metrics, callbacks, evaluation outputs."""
 
+from .evaluation import EvalConfig
 from .loss import LossConfig, LpipsWeightsMissing, PhotometricLoss, load_lpips_network, vgg16_weights_path
-from .module import AESplatModule, EvalConfig, NetConfig, RenderConfig
+from .module import AESplatModule, NetConfig
 from .optim import OptimConfig, WarmupCosine, build_optimizer, build_param_groups
 
 __all__ = [
@@ -12,7 +13,6 @@ __all__ = [
     "NetConfig",
     "OptimConfig",
     "PhotometricLoss",
-    "RenderConfig",
     "WarmupCosine",
     "build_optimizer",
     "build_param_groups",

@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,16 @@ from .metrics import OVERLAP_BUCKETS
 METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "psnr_highlight", "psnr_rest",
            "highlight_fraction")  # fmt: skip
 CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", *METRICS)
+
+
+@dataclass
+class EvalConfig:
+    """Where `aesplat test` writes and what it logs (config section ``model.eval``)."""
+
+    output_dir: str | None = None  # default: <trainer.default_root_dir>/test
+    num_sample_renders: int = 8  # scenes whose render grid is saved as PNG
+    log_images_every_n_steps: int = 500  # training image grids sent to the logger
+    metrics_lpips: bool = True  # compute the LPIPS metric when its weights are present
 
 
 def _finite(value: float | None) -> bool:

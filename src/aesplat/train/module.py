@@ -14,9 +14,8 @@ advance with the batch; ``SkipGuard`` explains the first such step and stops a r
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
-from typing import Any
 
 import torch
 from lightning.pytorch import LightningModule
@@ -34,34 +33,15 @@ from aesplat.model import (
     dataset_cameras,
     forward_batch,
 )
-from aesplat.render import render
+from aesplat.render import RasterizerConfig, render
 from aesplat.types import BatchedExample, RenderOutput
 
-from .evaluation import save_image, visual_grid, write_results
+from .evaluation import EvalConfig, save_image, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, camera_loss, maybe_lpips
 from .metrics import highlight_psnr, overlap_bucket, psnr, relative_pose_errors, ssim
 from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates
 from .rng import restore_rng_state, rng_state
 from .skip_guard import SkipGuard
-
-
-@dataclass
-class RenderConfig:
-    """Rasterizer settings (SPEC section 4)."""
-
-    backend: str = "auto"  # auto | torch | gsplat
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    options: dict[str, Any] = field(default_factory=dict)  # RenderSettings fields (tile_size, compile, ...)
-
-
-@dataclass
-class EvalConfig:
-    """Where `aesplat test` writes and what it logs."""
-
-    output_dir: str | None = None  # default: <trainer.default_root_dir>/test
-    num_sample_renders: int = 8  # scenes whose render grid is saved as PNG
-    log_images_every_n_steps: int = 500  # training image grids sent to the logger
-    metrics_lpips: bool = True  # compute the LPIPS metric when its weights are present
 
 
 class AESplatModule(LightningModule):
@@ -72,7 +52,7 @@ class AESplatModule(LightningModule):
         net: NetConfig | None = None,
         loss: LossConfig | None = None,
         optim: OptimConfig | None = None,
-        render: RenderConfig | None = None,
+        render: RasterizerConfig | None = None,
         eval: EvalConfig | None = None,
         cameras: CameraSource = "predicted",
     ) -> None:
@@ -81,7 +61,7 @@ class AESplatModule(LightningModule):
         super().__init__()
         net, loss, optim, render, eval = (
             _as(NetConfig, net), _as(LossConfig, loss), _as(OptimConfig, optim),
-            _as(RenderConfig, render), _as(EvalConfig, eval),
+            _as(RasterizerConfig, render), _as(EvalConfig, eval),
         )  # fmt: skip
         if cameras not in CAMERA_SOURCES:
             raise ValueError(f"model.cameras must be one of {', '.join(CAMERA_SOURCES)}, got {cameras!r}")
