@@ -102,7 +102,7 @@ BENCH_OUT ?= outputs/bench
 bench: $(STAMP)
 	$(AESPLAT) bench --ckpt $(CKPT) --out $(BENCH_OUT)
 
-# `make curves [CURVES_ARGS=...]`: learning curves, pose-free against posed and each lever (issue 13), on the
+# `make curves [CURVES_ARGS=...]`: learning curves, pose-free against posed and each lever that widens the pose signal, on the
 # demo's shards (made as `make demo` makes them if missing). Resumable: run it again after an interruption.
 # The runs start from a random initialisation (conf/demo_from_scratch.yaml) unless a run says otherwise.
 CURVES_OUT ?= outputs/curves

@@ -7,7 +7,7 @@ Workloads (forward + backward, CUDA-synchronised, median of the repeats after wa
     target each;
   - the reference workload: 100,352 Gaussians -> one 224² target.
 The direct call gets the same Gaussians in world space with a rigid view matrix and real K (no gradient for
-K); ``render`` also differentiates the cameras, intrinsics included. The goal (issue 17) is ≤ 1.5× the direct
+K); ``render`` also differentiates the cameras, intrinsics included. The goal is ≤ 1.5× the direct
 call.
 """
 

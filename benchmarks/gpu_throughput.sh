@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU throughput measurements of issue 17 in one command, on a machine with CUDA and gsplat:
+# The GPU throughput measurements (training step, render, model) in one command, on a CUDA machine with gsplat:
 #
 #   bash benchmarks/gpu_throughput.sh [OUT] [PART ...]        # OUT defaults to outputs/gpu-throughput
 #

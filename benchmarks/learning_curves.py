@@ -17,7 +17,7 @@ written at every point) without evaluating its finished points again.
 The data: the shards under DATA/shards; when they are missing they are made as `make demo` makes them
 (data_prep/synthetic.py into DATA/src with --scene-args, then data_prep/to_shards.py at --size).
 
-Runs (``--runs``; the levers are the options of issue 13, each off by default):
+Runs (``--runs``; the levers are the loss and data options that widen the pose signal, each off by default):
 
     pose-free        the method: ``--model.cameras predicted``
     posed            the same model with the data set's cameras (``--model.cameras dataset``)

@@ -1,6 +1,6 @@
 """Photometric loss λ_mse·MSE + λ_lpips·LPIPS(VGG) on target views, and the frozen LPIPS network.
 
-Two options widen what the loss tells the pose head (issue 13; both off by default, the paper's loss):
+Two options widen what the loss tells the pose head (both off by default, the paper's loss):
 ``context_weight`` adds the same photometric loss on the context views, each rendered from the Gaussians of
 all context views at its own camera, so the relative pose between the context views gets a signal of its
 own; ``blur_sigma`` / ``blur_steps`` compare blurred images early in training (coarse to fine), the blur
