@@ -20,7 +20,7 @@ from PIL import Image
 
 from aesplat.data import convert_dataset
 from aesplat.data.capture_shards import convert_captures, evaluation_sample
-from aesplat.data.captures import Camera, read_colmap, undistort, undistortion_zoom
+from aesplat.data.captures import Camera, distorted_pixels, read_colmap, undistort, undistortion_zoom
 from aesplat.data.stream import read_tar
 from aesplat.data.synthetic import render_scene, sample_scene, scene_to_chunk_entry
 
@@ -324,6 +324,29 @@ def test_opencv_distortion_is_undistorted(scene, chunk_reference, tmp_path):
     assert good > 27.0 and bad < 20.0, (good, bad)
 
 
+def test_lens_models_follow_opencv():
+    """Where a ray lands, by the formulas of OpenCV's documentation written out: the radial-tangential model
+    (k1, k2, p1, p2, k3) and the fisheye (Kannala-Brandt) model, pixel centres at integers."""
+    xy = torch.tensor([[0.3, -0.2], [-0.5, 0.4], [0.05, 0.6]], dtype=torch.float64)
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    k1, k2, p1, p2, k3 = -0.2, 0.05, 0.003, -0.002, 0.01
+    radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    cam = Camera("OPENCV", 64, 48, 50.0, 55.0, 32.5, 23.5, (k1, k2, p1, p2, k3))
+    expect = torch.stack([50.0 * xd + 32.0, 55.0 * yd + 23.0], -1)
+    torch.testing.assert_close(distorted_pixels(xy, cam), expect)
+
+    theta = torch.atan(r2.sqrt())
+    f1, f2, f3, f4 = 0.1, -0.02, 0.004, -0.001
+    theta_d = theta * (1 + f1 * theta**2 + f2 * theta**4 + f3 * theta**6 + f4 * theta**8)
+    scale = theta_d / r2.sqrt()
+    fish = Camera("OPENCV_FISHEYE", 64, 48, 50.0, 55.0, 32.5, 23.5, (f1, f2, f3, f4))
+    expect = torch.stack([50.0 * scale * x + 32.0, 55.0 * scale * y + 23.0], -1)
+    torch.testing.assert_close(distorted_pixels(xy, fish), expect)
+
+
 @pytest.mark.parametrize(
     "model, coeffs", [("OPENCV", (0.15, 0.05, 0.0, 0.0)), ("OPENCV_FISHEYE", (0.5, 0.3, 0.0, 0.0))]
 )
@@ -407,7 +430,8 @@ def test_generated_evaluation_samples_are_stated_and_repeatable(scene, chunk_ref
     out = tmp_path / "out"
     manifest = convert_captures(tmp_path / "src", out, "colmap", size=SIZE, context_gap=5, num_targets=3,
                                 progress=False)  # fmt: skip
-    assert manifest["evaluation_samples"] == {"room": {"context": [1, 6], "target": [2, 4, 5]}}
+    files = [f"frame_{i:05d}.jpg" for i in (1, 6, 2, 4, 5)]
+    assert manifest["evaluation_samples"] == {"room": {"context": [1, 6], "target": [2, 4, 5], "files": files}}
     assert evaluation_sample(8, 5, 3) == {"context": [1, 6], "target": [2, 4, 5], "overlap": None}
     assert evaluation_sample(30, 3, 5)["target"] == [14, 15]  # only two frames lie between
     shard = out / "test" / "test-room.tar"
@@ -453,3 +477,29 @@ def test_read_colmap_text_and_binary_agree(scene, chunk_reference, tmp_path):
     np.testing.assert_allclose(binary.c2w, text.c2w, atol=1e-12)
     assert text.names == binary.names == [f"frame_{i:05d}.jpg" for i in range(FRAMES)]
     assert text.cameras[0] == binary.cameras[0] and binary.cameras[0].distortion == (0.01, -0.002, 0.0, 0.0)
+
+
+def test_to_shards_script_dispatches_on_format(scene, chunk_reference, tmp_path, capsys):
+    import importlib.util
+
+    s, _ = scene
+    _, jpegs = chunk_reference
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
+    export_colmap(tmp_path / "src" / "room", jpegs, c2w, k, binary=False)
+    (tmp_path / "src" / "empty").mkdir()
+    spec = importlib.util.spec_from_file_location("to_shards", REPO / "data_prep" / "to_shards.py")
+    to_shards = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(to_shards)
+    to_shards.main(["--format", "colmap", "--src", str(tmp_path / "src"), "--out", str(tmp_path / "out"),
+                    "--size", "16", "--context-gap", "4", "--num-targets", "2"])  # fmt: skip
+    captured = capsys.readouterr()
+    summary = json.loads(captured.out)
+    assert summary["test"]["samples"] == 1 and summary["test"]["skips"] == {"missing_capture_file": 1}
+    assert captured.err.count("refused: empty:") == 1
+    manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
+    assert manifest["capture"]["context_gap"] == 4 and manifest["config"]["size"] == 16
+    assert manifest["evaluation_samples"]["room"]["context"] == [1, 5]
+    assert manifest["evaluation_samples"]["room"]["target"] == [2, 4]
+    with pytest.raises(SystemExit) as verdict:  # the chunk path's checksum verification reads this manifest too
+        to_shards.main(["--verify", "--out", str(tmp_path / "out")])
+    assert verdict.value.code == 0

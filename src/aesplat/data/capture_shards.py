@@ -173,15 +173,19 @@ def convert_capture(job: _Job) -> dict[str, Any]:
         "scene_keys": [name],
         "frames": len(capture),
         "skips": dict(sorted(skips.items())),
-        "evaluation_sample": {"context": views[0][1], "target": views[0][2]}
-        if job.capture.split == "test"
-        else None,
+        "evaluation_sample": _stated(capture.names, views[0]) if job.capture.split == "test" else None,
         "sha256": sha256(shard),
         "bytes": shard.stat().st_size,
         **_settings(job),
     }
     shard.with_suffix(".json").write_text(json.dumps(record, indent=1))
     return record
+
+
+def _stated(names: list[str], view: tuple) -> dict[str, Any]:
+    """A test sample as the manifest states it: an evaluation index entry, plus the files it reads."""
+    _, context, target, _ = view
+    return {"context": context, "target": target, "files": [names[f] for f in context + target]}
 
 
 def _finished(job: _Job) -> dict[str, Any] | None:

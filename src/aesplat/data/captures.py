@@ -209,7 +209,7 @@ def normalized_intrinsics(camera: Camera) -> np.ndarray:
     ])  # fmt: skip
 
 
-def _source_pixels(xy: torch.Tensor, camera: Camera) -> torch.Tensor:
+def distorted_pixels(xy: torch.Tensor, camera: Camera) -> torch.Tensor:
     """Points on the z = 1 plane [N, 2] -> where the distorted camera sees them, in pixels with integer pixel
     centres (kornia's convention; ours is shifted by 0.5) [N, 2]."""
     from kornia.geometry.calibration import distort_points
@@ -243,7 +243,7 @@ def undistortion_zoom(camera: Camera) -> float:
                       torch.zeros(h), torch.full((h,), w - 1.0)]).double()  # fmt: skip
 
     def inside(zoom: float) -> bool:
-        uv = _source_pixels(_plane_points(camera, zoom, rows, cols), camera)
+        uv = distorted_pixels(_plane_points(camera, zoom, rows, cols), camera)
         return bool(((uv >= 0) & (uv <= torch.tensor([w - 1.0, h - 1.0], dtype=uv.dtype))).all())
 
     if inside(1.0):
@@ -271,7 +271,7 @@ def undistort(image: Image.Image, camera: Camera, zoom: float) -> Image.Image:
     w, h = camera.width, camera.height
     rows = torch.arange(h, dtype=torch.float64)[:, None]
     cols = torch.arange(w, dtype=torch.float64)[None, :]
-    uv = _source_pixels(_plane_points(camera, zoom, rows, cols), camera).reshape(h, w, 2).float()
+    uv = distorted_pixels(_plane_points(camera, zoom, rows, cols), camera).reshape(h, w, 2).float()
     pixels = torch.from_numpy(np.asarray(image.convert("RGB"), dtype=np.float32)).permute(2, 0, 1)[None]
     out = remap(pixels, uv[None, ..., 0], uv[None, ..., 1], mode="bilinear", align_corners=True)
     return Image.fromarray(out[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy())
