@@ -159,7 +159,8 @@ def convert_capture(job: _Job) -> dict[str, Any]:
     except CaptureError as e:
         for stale in (shard, shard.with_suffix(".json")):
             stale.unlink(missing_ok=True)
-        return {"scene": name, "refused": e.reason, "message": str(e)}
+        message = str(e) if str(e).startswith(f"{name}:") else f"{name}: {e}"
+        return {"scene": name, "refused": e.reason, "message": message}
     tmp = shard.with_suffix(".tar.tmp")
     write_tar(tmp, samples)
     os.replace(tmp, shard)

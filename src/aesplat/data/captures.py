@@ -68,7 +68,7 @@ class CaptureError(ValueError):
         self.reason = reason
 
 
-@dataclass
+@dataclass(frozen=True)
 class Camera:
     """One source camera: pixel intrinsics for a ``width`` x ``height`` image and its lens model.
 
@@ -263,15 +263,21 @@ def undistortion_zoom(camera: Camera) -> float:
     return hi
 
 
-def undistort(image: Image.Image, camera: Camera, zoom: float) -> Image.Image:
-    """A distorted image (of ``camera``'s size) -> the pinhole image of the same size whose focal length is
-    ``zoom`` times the camera's (same principal point), bilinearly resampled by kornia."""
-    from kornia.geometry.transform import remap
-
+def undistortion_map(camera: Camera, zoom: float) -> torch.Tensor:
+    """For every pixel of the pinhole output (same size, same principal point, focal length ``zoom`` times the
+    camera's), the source pixel it samples: float32 [H, W, 2] (x, y), integer pixel centres."""
     w, h = camera.width, camera.height
     rows = torch.arange(h, dtype=torch.float64)[:, None]
     cols = torch.arange(w, dtype=torch.float64)[None, :]
-    uv = distorted_pixels(_plane_points(camera, zoom, rows, cols), camera).reshape(h, w, 2).float()
+    return distorted_pixels(_plane_points(camera, zoom, rows, cols), camera).reshape(h, w, 2).float()
+
+
+def undistort(image: Image.Image, camera: Camera, zoom: float, uv: torch.Tensor | None = None) -> Image.Image:
+    """A distorted image (of ``camera``'s size) -> its pinhole image (see :func:`undistortion_map`, or pass the
+    map as ``uv``), bilinearly resampled by kornia."""
+    from kornia.geometry.transform import remap
+
+    uv = undistortion_map(camera, zoom) if uv is None else uv
     pixels = torch.from_numpy(np.asarray(image.convert("RGB"), dtype=np.float32)).permute(2, 0, 1)[None]
     out = remap(pixels, uv[None, ..., 0], uv[None, ..., 1], mode="bilinear", align_corners=True)
     return Image.fromarray(out[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy())
@@ -289,10 +295,12 @@ def pinhole_camera(camera: Camera) -> tuple[Camera, float]:
 class CaptureImages(Sequence):
     """The frames' images as encoded bytes, read (and undistorted) on access: what the shard writer indexes.
 
-    A pinhole frame is the file's own bytes; an undistorted frame is a lossless PNG of the pinhole image."""
+    A pinhole frame is the file's own bytes; an undistorted frame is an uncompressed PNG of the pinhole image
+    (lossless; read back at once). The undistortion map is computed once per camera."""
 
     def __init__(self, capture: Capture) -> None:
         self.capture = capture
+        self._maps: dict[Camera, tuple[float, torch.Tensor]] = {}
 
     def __len__(self) -> int:
         return len(self.capture)
@@ -301,24 +309,26 @@ class CaptureImages(Sequence):
         path, camera = self.capture.paths[i], self.capture.cameras[i]
         if not camera.distorted:
             return path.read_bytes()
-        zoom = pinhole_camera(camera)[1]
+        if camera not in self._maps:
+            zoom = pinhole_camera(camera)[1]
+            self._maps[camera] = zoom, undistortion_map(camera, zoom)
+        zoom, uv = self._maps[camera]
         with Image.open(path) as im:
-            out = undistort(im, camera, zoom)
+            out = undistort(im, camera, zoom, uv)
         buf = io.BytesIO()
-        out.save(buf, format="PNG", compress_level=1)
+        out.save(buf, format="PNG", compress_level=0)
         return buf.getvalue()
 
 
 def capture_cameras(capture: Capture) -> tuple[np.ndarray, np.ndarray]:
     """(camera-to-world float64 [F, 4, 4], normalised pinhole intrinsics float64 [F, 3, 3]) of the frames as
     converted: undistorted cameras carry their zoomed focal length."""
-    zooms: dict[tuple, Camera] = {}
+    pinhole: dict[Camera, Camera] = {}
     ks = []
     for cam in capture.cameras:
-        key = (cam.model, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cam.distortion)
-        if key not in zooms:  # one zoom search per distinct camera, not per frame
-            zooms[key] = pinhole_camera(cam)[0]
-        ks.append(normalized_intrinsics(zooms[key]))
+        if cam not in pinhole:  # one zoom search per distinct camera, not per frame
+            pinhole[cam] = pinhole_camera(cam)[0]
+        ks.append(normalized_intrinsics(pinhole[cam]))
     return capture.c2w, np.stack(ks)
 
 
