@@ -81,7 +81,8 @@ def export_nerfstudio(scene_dir: Path, images: list[bytes], c2w: np.ndarray, k: 
                       ext: str = "png") -> Path:  # fmt: skip
     """transforms.json: camera-to-world in OpenGL axes, frames listed in reverse order."""
     names = write_images(scene_dir / folder, images, ext)
-    w, h = Image.open(scene_dir / folder / names[0]).size
+    with Image.open(scene_dir / folder / names[0]) as im:
+        w, h = im.size
     intr = {"fl_x": k[0, 0] * w, "fl_y": k[1, 1] * h, "cx": k[0, 2] * w, "cy": k[1, 2] * h, "w": w, "h": h}
     intr.update(distortion or {})
     frames = []
@@ -259,7 +260,9 @@ def test_downscaled_image_folder_keeps_normalised_intrinsics(scene, chunk_refere
 
     # An image folder that is not a uniform down-scale is refused, not silently mis-calibrated.
     for name in sorted((tmp_path / "src" / "room" / "images_2").iterdir()):
-        Image.open(name).resize((W // 2, H // 2 + 3)).save(name)
+        with Image.open(name) as im:
+            stretched = im.resize((W // 2, H // 2 + 3))
+        stretched.save(name)
     manifest, _ = convert_one(tmp_path / "src", tmp_path / "out2", "nerfstudio", images="images_2")
     assert manifest["splits"]["test"]["skips"] == {"image_size_mismatch": 1}
     assert "32x27" in manifest["splits"]["test"]["refused"]["room"]

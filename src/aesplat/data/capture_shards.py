@@ -230,7 +230,8 @@ def convert_captures(
 ) -> dict[str, Any]:
     """Convert ``src/<scene>/`` capture folders into ``out/<split>/<split>-<scene>.tar`` and
     ``out/manifest.json``; the options are :class:`CaptureConfig`'s and the chunk path's
-    (:func:`aesplat.data.shards.convert_dataset`). Returns the manifest."""
+    (:func:`aesplat.data.shards.convert_dataset`). eval_index defaults to ``src/evaluation_index.json`` if it
+    exists (test split). Returns the manifest."""
     src, out = Path(src), Path(out)
     capture = CaptureConfig(fmt, split, capture_path, images, frame_order, context_gap, num_targets)
     if not src.is_dir():
@@ -242,6 +243,8 @@ def convert_captures(
                         train_targets=train_targets, max_fov_deg=max_fov_deg, min_baseline=min_baseline,
                         expect_shape=tuple(expect_shape) if expect_shape is not None else None,
                         jpeg_quality=jpeg_quality, seed=seed, dataset=dataset or src.name)  # fmt: skip
+    if eval_index is None and split == "test" and (src / "evaluation_index.json").is_file():
+        eval_index = src / "evaluation_index.json"  # as the chunk path does
     index = None
     if eval_index is not None:
         if split != "test":
