@@ -506,3 +506,28 @@ def test_to_shards_script_dispatches_on_format(scene, chunk_reference, tmp_path,
     with pytest.raises(SystemExit) as verdict:  # the chunk path's checksum verification reads this manifest too
         to_shards.main(["--verify", "--out", str(tmp_path / "out")])
     assert verdict.value.code == 0
+    with pytest.raises(SystemExit, match="^error: --eval-index picks test samples"):
+        to_shards.main(["--format", "colmap", "--src", str(tmp_path / "src"), "--out", str(tmp_path / "o2"),
+                        "--split", "train", "--eval-index", str(tmp_path / "index.json")])  # fmt: skip
+
+
+def test_training_split_draws_gaps_over_the_range(scene, chunk_reference, tmp_path):
+    s, _ = scene
+    _, jpegs = chunk_reference
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
+    export_colmap(tmp_path / "src" / "room", jpegs, c2w, k, binary=True)
+    manifest = convert_captures(tmp_path / "src", tmp_path / "out", "colmap", size=16, split="train", min_gap=3,
+                                max_gap=6, samples_per_scene=3, train_targets=2, progress=False)  # fmt: skip
+    assert set(manifest["splits"]) == {"train"} and manifest["splits"]["train"]["samples"] == 3
+    assert manifest["evaluation_samples"] == {}
+    samples = dict(read_tar(tmp_path / "out" / "train" / "train-room.tar"))
+    assert sorted(samples) == ["room_000", "room_001", "room_002"]
+    gaps = []
+    for raw in samples.values():
+        meta = json.loads(raw["meta.json"])
+        (c0, c1), gaps = meta["context"], gaps + [meta["gap"]]
+        assert 3 <= c1 - c0 <= 6 and all(c0 < t < c1 for t in meta["target"]) and len(meta["target"]) == 2
+        np.testing.assert_allclose(
+            load(raw, "extrinsics.npy"), c2w[meta["context"] + meta["target"]], atol=1e-5
+        )
+    assert min(gaps) == 3
