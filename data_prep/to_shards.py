@@ -1,11 +1,17 @@
 #!/usr/bin/env python
-"""Convert pixelSplat-style chunks (RealEstate10K, ACID, the synthetic set) into WebDataset shards.
+"""Convert pixelSplat-style chunks (RealEstate10K, ACID, the synthetic set) or posed captures (DL3DV,
+ScanNet++, your own COLMAP run) into WebDataset shards.
 
     python data_prep/to_shards.py --src DIR --out OUT [--size 256 --eval-index FILE --workers N]
+    python data_prep/to_shards.py --format nerfstudio|colmap --src DIR --out OUT [--size 256 --split test]
 
 SRC holds train/ and test/ folders of *.torch chunks (each with index.json). Writes OUT/train/*.tar,
 OUT/test/*.tar and OUT/manifest.json (counts, skipped scenes with reasons, SHA-256 per shard). Rerunning the
 same command resumes: completed shards whose checksum matches are kept.
+
+With --format nerfstudio or colmap, SRC holds one folder per scene (a transforms.json or a COLMAP sparse model
+with its images); every scene goes to --split (test by default) as one shard, and scenes that cannot be
+converted are refused with a one-line reason (docs/captures.md).
 
     python data_prep/to_shards.py --verify --out OUT     # check every shard against the manifest's SHA-256
 """
@@ -16,13 +22,46 @@ import argparse
 import json
 import sys
 
+from aesplat.data.capture_shards import convert_captures
 from aesplat.data.shards import convert_dataset, verify_shards
 from aesplat.threads import apply_thread_policy
 
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--src", help="chunk folder with train/ and test/ (pixelSplat layout)")
+    p.add_argument("--src", help="chunk folder with train/ and test/ (pixelSplat layout), or capture folder")
+    p.add_argument(
+        "--format",
+        choices=("chunks", "nerfstudio", "colmap"),
+        default="chunks",
+        help="source format: pixelSplat chunks (default), or one folder per scene with a nerfstudio "
+        "transforms.json / a COLMAP sparse model",
+    )
+    p.add_argument("--split", choices=("train", "test"), default="test", help="captures: split of every scene")
+    p.add_argument(
+        "--capture-path",
+        default=None,
+        help="captures: transforms file (nerfstudio) or model folder (COLMAP) relative to each scene folder "
+        "(default: the one found in it)",
+    )
+    p.add_argument(
+        "--images",
+        default=None,
+        help="captures: image folder; nerfstudio: replaces the first folder of each file_path (e.g. images_4), "
+        "COLMAP: relative to the scene folder (default images)",
+    )
+    p.add_argument(
+        "--frame-order",
+        choices=("name", "file"),
+        default="name",
+        help="nerfstudio: frames sorted by file_path (default) or in the file's order; indices refer to it",
+    )
+    p.add_argument(
+        "--context-gap", type=int, default=25, help="captures without --eval-index: context gap in frames (25)"
+    )
+    p.add_argument(
+        "--num-targets", type=int, default=3, help="captures without --eval-index: targets between (default 3)"
+    )
     p.add_argument("--out", required=True, help="shard folder to write")
     p.add_argument("--size", type=int, default=256, help="square output side in pixels (default 256)")
     p.add_argument(
@@ -81,6 +120,9 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(1 if bad else 0)
     if a.src is None:
         p.error("--src is required (unless --verify)")
+    if a.format != "chunks":
+        convert_capture_folders(a)
+        return
     manifest = convert_dataset(
         a.src, a.out, size=a.size, eval_index=a.eval_index, workers=a.workers, min_gap=a.min_gap,
         max_gap=a.max_gap, samples_per_scene=a.samples_per_scene, train_targets=a.train_targets,
@@ -88,6 +130,28 @@ def main(argv: list[str] | None = None) -> None:
         jpeg_quality=a.jpeg_quality, seed=a.seed, dataset=a.dataset, specular_threshold=a.specular_threshold,
     )  # fmt: skip
     summary = {s: {k: v for k, v in e.items() if k != "shards"} for s, e in manifest["splits"].items()}
+    print(json.dumps(summary, indent=1))
+
+
+def convert_capture_folders(a: argparse.Namespace) -> None:
+    """``--format nerfstudio|colmap``: one folder per scene -> shards; prints the summary and each refusal."""
+    try:
+        manifest = convert_captures(
+            a.src, a.out, a.format, size=a.size, split=a.split, eval_index=a.eval_index, workers=a.workers,
+            capture_path=a.capture_path, images=a.images, frame_order=a.frame_order, context_gap=a.context_gap,
+            num_targets=a.num_targets, min_gap=a.min_gap if a.min_gap is not None else 25,
+            max_gap=a.max_gap if a.max_gap is not None else 90, samples_per_scene=a.samples_per_scene,
+            train_targets=a.train_targets, max_fov_deg=a.max_fov, min_baseline=a.min_baseline,
+            expect_shape=a.expect_shape, jpeg_quality=a.jpeg_quality, seed=a.seed, dataset=a.dataset,
+        )  # fmt: skip
+    except (ValueError, FileNotFoundError) as e:  # bad options or source: one line, no traceback
+        sys.exit(f"error: {e}")
+    for entry in manifest["splits"].values():
+        for message in entry["refused"].values():
+            print(f"refused: {message}", file=sys.stderr)
+    summary = {
+        s: {k: v for k, v in e.items() if k not in ("shards", "refused")} for s, e in manifest["splits"].items()
+    }
     print(json.dumps(summary, indent=1))
 
 

@@ -5,6 +5,7 @@
 
 from typing import TYPE_CHECKING
 
+from .capture_shards import convert_captures
 from .curriculum import GapCurriculum
 from .rooms import generate_dataset, render_scene, sample_scene
 from .shards import convert_dataset, verify_shards
@@ -16,6 +17,7 @@ if TYPE_CHECKING:
 __all__ = [
     "DataModule",
     "GapCurriculum",
+    "convert_captures",
     "convert_dataset",
     "flip_views",
     "generate_dataset",
