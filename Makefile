@@ -104,9 +104,10 @@ bench: $(STAMP)
 
 # `make curves [CURVES_ARGS=...]`: learning curves, pose-free against posed and each lever that widens the pose signal, on the
 # demo's shards (made as `make demo` makes them if missing). Resumable: run it again after an interruption.
-# The runs start from a random initialisation (conf/demo_from_scratch.yaml) unless a run says otherwise.
+# The runs start from a random initialisation (conf/demo_from_scratch.yaml on conf/demo.yaml) unless a run says
+# otherwise.
 CURVES_OUT ?= outputs/curves
-CURVES_CONFIG ?= conf/demo_from_scratch.yaml
+CURVES_CONFIG ?= conf/demo.yaml conf/demo_from_scratch.yaml  # layered left to right
 CURVES_ARGS ?= --steps 20000 --every 500 --runs pose-free posed context-views coarse-to-fine patch-7 correlation
 
 curves: $(STAMP)
@@ -115,7 +116,7 @@ curves: $(STAMP)
 
 # `make warmstart`: the weights file `make demo` starts from (weights/demo-warmstart.pt): the tiny model trained
 # with the data set's cameras and a supervised camera loss on 1,536 synthetic scenes of another seed than the
-# demo's (conf/warmstart.yaml, 8,000 steps), then only its model tensors kept. About 5 min of scene generation
+# demo's (conf/warmstart.yaml on conf/demo.yaml, 8,000 steps), then only its model tensors kept. About 5 min of scene generation
 # and 45 min of training on one core: the fit runs on one thread (`--threads 1`), which makes it bit for bit
 # the run that made the shipped file (two threads sum in another order). The scene sources (1 GB) are removed
 # once they are packed into shards (240 MB). Interrupted, it resumes from the run's last checkpoint.
@@ -128,11 +129,11 @@ warmstart: $(STAMP)
 		$(PY) data_prep/synthetic.py --out $(WARMSTART_DIR)/src $(WARMSTART_SCENES) --threads 2 && \
 		$(PY) data_prep/to_shards.py --src $(WARMSTART_DIR)/src --out $(WARMSTART_DIR)/shards --size 42 --workers 2 && \
 		rm -rf $(WARMSTART_DIR)/src; }
-	$(AESPLAT) fit -c conf/warmstart.yaml --threads 1 --data.root $(WARMSTART_DIR)/shards \
+	$(AESPLAT) fit -c conf/demo.yaml -c conf/warmstart.yaml --threads 1 --data.root $(WARMSTART_DIR)/shards \
 		--trainer.default_root_dir $(WARMSTART_DIR)/run --trainer.logger+=CSVLogger \
 		--trainer.logger.save_dir $(WARMSTART_DIR)/run --trainer.logger.name "" --trainer.logger.version "" --ckpt_path last
 	$(PY) scripts/export_weights.py --ckpt $(WARMSTART_DIR)/run/checkpoints/last.ckpt --out $(WARMSTART_WEIGHTS) \
-		--note "make warmstart (conf/warmstart.yaml, seed 0, --threads 1; scenes: synthetic.py $(WARMSTART_SCENES))"
+		--note "make warmstart (conf/demo.yaml + conf/warmstart.yaml, seed 0, --threads 1; scenes: synthetic.py $(WARMSTART_SCENES))"
 
 clean:
 	rm -rf $(VENV) $(FLOOR_VENV) outputs .pytest_cache .ruff_cache

@@ -37,7 +37,7 @@ def loader_rate(
     """Training samples per second of the DataModule's stream, after a warm-up."""
     dm = DataModule(root=str(root), image_size=size, batch_size=batch_size, num_workers=workers,
                     gap_initial=gap, gap_final=gap, gap_warmup_steps=0, flip_augment=True,
-                    train_batches_per_epoch=batches + 3, near=0.1, far=20.0)  # fmt: skip
+                    train_batches_per_epoch=batches + 3)  # fmt: skip
     it = iter(dm.train_dataloader())
     for _ in range(3):  # worker start-up and the shuffle buffers
         next(it)

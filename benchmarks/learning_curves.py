@@ -1,8 +1,9 @@
 #!/usr/bin/env python
 """Learning curves: what accuracy costs in training time, pose-free against posed, and each lever's curve.
 
-    python benchmarks/learning_curves.py [--config conf/demo_from_scratch.yaml] [--data outputs/demo]
-        [--size 42] [--steps 20000] [--every 500] [--runs pose-free posed ...] [--define NAME='--model.x 1 ...']
+    python benchmarks/learning_curves.py [--config conf/demo.yaml conf/demo_from_scratch.yaml]
+        [--data outputs/demo] [--size 42] [--steps 20000] [--every 500] [--runs pose-free posed ...]
+        [--define NAME='--model.x 1 ...']
         [--data-seeds 0 1 2] [--out outputs/curves] [-- extra `aesplat fit` overrides for every run]
 
 Trains each named run with `aesplat fit` (in this process, one after the other, same config and seed) and
@@ -28,11 +29,11 @@ Runs (``--runs``; the levers are the loss and data options that widen the pose s
     correlation      pose-free with the camera head's view-0 cost volume
                      (``model.net.options.camera_correlation``)
     warm-start       pose-free from the posed warm start (``model.net.weights``): first, once, a fit of
-                     ``--warm-start-config`` (conf/warmstart.yaml: the data set's cameras render, the camera
-                     head is supervised) for ``--warm-start-steps`` on a disjoint scene set (synthetic.py
-                     --seed 1, 1,536 training scenes, in OUT/warm-start-data), resumable; its last.ckpt
-                     starts it, with the correlation branch and lr 1e-4 (``WARM_START_FINE_TUNE``, as
-                     conf/demo.yaml)
+                     ``--warm-start-config`` (conf/demo.yaml conf/warmstart.yaml: the data set's cameras
+                     render, the camera head is supervised) for ``--warm-start-steps`` on a disjoint scene
+                     set (synthetic.py --seed 1, 1,536 training scenes, in OUT/warm-start-data), resumable;
+                     its last.ckpt starts it, with the correlation branch and lr 1e-4
+                     (``WARM_START_FINE_TUNE``, as conf/demo.yaml)
 
 ``--define NAME='ARGS'`` adds a run of your own (ARGS: `aesplat fit` overrides). ``--data-seeds 0 1 2`` trains
 every run once per data seed (``--data.seed``: which training samples are drawn, in which order; the test scenes
@@ -89,7 +90,7 @@ WARM_START_FINE_TUNE = ["--model.net.options", '{"camera_correlation": true}', "
 
 
 def warm_start(args: argparse.Namespace) -> Path:
-    """The warm-start checkpoint: shards of a disjoint scene set, then `aesplat fit -c conf/warmstart.yaml`
+    """The warm-start checkpoint: shards of a disjoint scene set, then `aesplat fit` of ``--warm-start-config``
     to ``--warm-start-steps`` (continuing an interrupted fit). Returns its last.ckpt."""
     from aesplat.cli import run_lightning
 
@@ -99,9 +100,11 @@ def warm_start(args: argparse.Namespace) -> Path:
     last = run_dir / "checkpoints" / "last.ckpt"
     if last.is_file() and checkpoint_step(last) >= args.warm_start_steps:
         return last
-    print(f"learning_curves: warm start: {args.warm_start_steps} steps of {args.warm_start_config}", flush=True)
+    configs = " + ".join(args.warm_start_config)
+    print(f"learning_curves: warm start: {args.warm_start_steps} steps of {configs}", flush=True)
     run_lightning([
-        "fit", "-c", args.warm_start_config, "--data.root", str(shards), "--data.image_size", str(args.size),
+        "fit", *config_args(args.warm_start_config), "--data.root", str(shards),
+        "--data.image_size", str(args.size),
         "--trainer.default_root_dir", str(run_dir), "--trainer.max_steps", str(args.warm_start_steps),
         "--trainer.limit_val_batches", "0", "--trainer.logger+=CSVLogger", "--trainer.logger.save_dir",
         str(run_dir), "--trainer.logger.name", "", "--trainer.logger.version", "",
@@ -130,10 +133,17 @@ def ensure_shards(data: Path, size: int, scene_args: str) -> Path:
     return shards
 
 
-def fit_args(config: str, shards: Path, size: int, run_dir: Path, steps: int, every: int, extra: list[str]):
+def config_args(configs: list[str]) -> list[str]:
+    """``-c FILE`` for each config file, layered left to right."""
+    return [arg for config in configs for arg in ("-c", config)]
+
+
+def fit_args(
+    configs: list[str], shards: Path, size: int, run_dir: Path, steps: int, every: int, extra: list[str]
+) -> list[str]:
     """The `aesplat fit` command line of one curve: no validation, no logger, last.ckpt at every point."""
     return [
-        "fit", "-c", config, "--data.root", str(shards), "--data.image_size", str(size),
+        "fit", *config_args(configs), "--data.root", str(shards), "--data.image_size", str(size),
         "--trainer.default_root_dir", str(run_dir), "--trainer.max_steps", str(steps),
         "--trainer.limit_val_batches", "0", "--trainer.logger", "false",
         "--trainer.enable_progress_bar", "false",
@@ -247,9 +257,8 @@ def main(argv: list[str] | None = None) -> int:
         i = argv.index("--")
         argv, extra = argv[:i], argv[i + 1 :]
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument(
-        "--config", default="conf/demo_from_scratch.yaml", help="`aesplat fit` config of every run"
-    )
+    parser.add_argument("--config", nargs="+", default=["conf/demo.yaml", "conf/demo_from_scratch.yaml"],
+                        help="`aesplat fit` config files of every run, layered left to right")  # fmt: skip
     parser.add_argument("--data", type=Path, default=Path("outputs/demo"), help="shards under DATA/shards")
     parser.add_argument("--size", type=int, default=42, help="image side of the shards and of the model input")
     parser.add_argument("--scene-args", default="", help="data_prep/synthetic.py options when making shards")
@@ -262,7 +271,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"train every run once per data seed (`--data.seed S`), as RUN{SEED_TAG}S; "
                         "CURVES.md adds each run's mean and 95 %% interval over them")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/curves"), help="one folder per run, the plot")
-    parser.add_argument("--warm-start-config", default="conf/warmstart.yaml", help="the warm start's config")
+    parser.add_argument("--warm-start-config", nargs="+", default=["conf/demo.yaml", "conf/warmstart.yaml"],
+                        help="the warm start's config files, layered left to right")  # fmt: skip
     parser.add_argument("--warm-start-steps", type=int, default=8000, help="steps of the warm start (8000)")
     parser.add_argument("--warm-start-scene-args", default=WARM_START_SCENES,
                         help=f"synthetic.py options of its scenes (default: {WARM_START_SCENES})")  # fmt: skip
@@ -306,7 +316,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"learning_curves: {name}: done in {time.perf_counter() - start:.0f} s wall", flush=True)
 
     curves = {name: read_curve(args.out / name / "curve.csv") for name in names}
-    title = f"{args.config}, {args.size} px, shards {shards}"
+    title = f"{' + '.join(args.config)}, {args.size} px, shards {shards}"
     plot_curves(curves, args.out / "curves.png", title)
     table = summary_table(curves)
     (args.out / "CURVES.md").write_text("\n".join([f"# Learning curves ({title})", "", *table]) + "\n")

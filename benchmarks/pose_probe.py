@@ -98,8 +98,8 @@ def probe(variant: str, args: argparse.Namespace, shards: Path) -> list[dict]:
     from aesplat.train.metrics import relative_pose_errors
 
     torch.manual_seed(args.seed)
-    data = DataModule(root=str(shards), image_size=args.size, batch_size=args.batch, num_workers=1, near=0.1,
-                      far=20.0, gap_initial=(5, 21), gap_final=(5, 21), gap_warmup_steps=1,
+    data = DataModule(root=str(shards), image_size=args.size, batch_size=args.batch, num_workers=1,
+                      gap_initial=(5, 21), gap_final=(5, 21), gap_warmup_steps=1,
                       train_batches_per_epoch=10**9, seed=args.seed)  # fmt: skip
     data.set_distributed(0, 1)
     train = iter(data.train_dataloader())

@@ -68,7 +68,8 @@ def main(argv: list[str] | None = None) -> None:
     n = info["train_scenes"] + info["test_scenes"]
     print(f"wrote {n} scenes ({info['train_scenes']} train, {info['test_scenes']} test) x {a.frames} frames "
           f"at {a.height}x{a.width} to {a.out} in {time.perf_counter() - start:.1f} s; "
-          f"suggested context gaps {info['gap_range']}, near/far {info['near']}/{info['far']}")  # fmt: skip
+          f"suggested context gaps (data.gap_final) {info['gap_range']}, depth range (model.net.near/far) "
+          f"{info['near']}/{info['far']}")  # fmt: skip
 
 
 if __name__ == "__main__":

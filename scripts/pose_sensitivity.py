@@ -114,8 +114,7 @@ def main(argv: list[str] | None = None) -> dict:
     if a.scenes < 1 or a.step <= 0:
         p.error("--scenes must be >= 1 and --step > 0")
     module = load_module(a.ckpt)
-    data = DataModule(root=a.data_root, image_size=a.image_size, num_workers=0, eval_batch_size=1,
-                      near=module.model.cfg.near, far=module.model.cfg.far)  # fmt: skip
+    data = DataModule(root=a.data_root, image_size=a.image_size, num_workers=0, eval_batch_size=1)
     batches = (b for i, b in zip(range(a.scenes), data.test_dataloader()))
     result = measure(module, batches, list(a.offsets), a.step)
     print("yaw offset (deg) | " + " | ".join(f"{d:g}" for d in result["offsets_deg"]))

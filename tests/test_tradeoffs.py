@@ -37,8 +37,6 @@ def views(v: int, size: int = SIZE) -> BatchedViews:
         images=torch.rand(1, v, 3, size, size),
         extrinsics=torch.eye(4).repeat(1, v, 1, 1),
         intrinsics=torch.tensor([[1.0, 0, 0.5], [0, 1.0, 0.5], [0, 0, 1]]).repeat(1, v, 1, 1),
-        near=torch.full((1, v), 0.1),
-        far=torch.full((1, v), 20.0),
         index=torch.arange(v)[None],
     )
 

@@ -19,8 +19,6 @@ def views(b=2, v=2, h=8, w=8):
         images=torch.rand(b, v, 3, h, w),
         extrinsics=torch.eye(4).expand(b, v, 4, 4),
         intrinsics=torch.eye(3).expand(b, v, 3, 3),
-        near=torch.ones(b, v),
-        far=torch.ones(b, v),
         index=torch.zeros(b, v, dtype=torch.long),
     )
 

@@ -135,8 +135,41 @@ _EXPECTED_WARNINGS = (
 )
 
 
+# Keys older configs set that no longer exist, and what replaced them.
+REMOVED_KEYS = {
+    "data.near": "the depth range is the model's alone: set model.net.near (the data carry no depth range)",
+    "data.far": "the depth range is the model's alone: set model.net.far (the data carry no depth range)",
+}
+
+
+def removed_key_error(argv: Sequence[str]) -> str | None:
+    """One line naming the first removed key ``argv`` sets (``--key`` or a key of a ``-c`` file), or None."""
+    import yaml
+
+    for i, arg in enumerate(argv):
+        key = arg[2:].split("=", 1)[0] if arg.startswith("--") else ""
+        if key in REMOVED_KEYS:
+            return f"aesplat: --{key} was removed; {REMOVED_KEYS[key]}"
+        if arg in ("-c", "--config") and i + 1 < len(argv):
+            path = Path(argv[i + 1])
+        elif arg.startswith("--config="):
+            path = Path(arg.split("=", 1)[1])
+        else:
+            continue
+        if not path.is_file():
+            continue  # LightningCLI says so
+        config = yaml.safe_load(path.read_text()) or {}
+        for dotted in REMOVED_KEYS:
+            section, name = dotted.split(".")
+            if isinstance(config.get(section), dict) and name in config[section]:
+                return f"aesplat: {path} sets {dotted}, which was removed; {REMOVED_KEYS[dotted]}"
+    return None
+
+
 def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None:
     """Run fit / validate / test through the LightningCLI (``module_class``: a subclass of AESplatModule)."""
+    if error := removed_key_error(argv):
+        raise SystemExit(error)
     for pattern in _EXPECTED_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
     cli_class, default_module, data_class = _lightning_cli()

@@ -116,15 +116,12 @@ class BatchedViews(_TensorContainer):
     images      [B, V, 3, H, W]  float in [0, 1], or uint8 straight from the loader (see ``float_images``)
     extrinsics  [B, V, 4, 4]     camera-to-world (OpenCV axes)
     intrinsics  [B, V, 3, 3]     normalised (fx, cx / W; fy, cy / H)
-    near, far   [B, V]           depth range for the scene
     index       [B, V]           frame index in the source video (int64)
     """
 
     images: Tensor
     extrinsics: Tensor
     intrinsics: Tensor
-    near: Tensor
-    far: Tensor
     index: Tensor
 
     def __post_init__(self) -> None:
@@ -132,12 +129,10 @@ class BatchedViews(_TensorContainer):
         _check("BatchedViews.images", self.images, 5, (3, None, None), allow_uint8=True)
         _check("BatchedViews.extrinsics", self.extrinsics, 4, (4, 4))
         _check("BatchedViews.intrinsics", self.intrinsics, 4, (3, 3))
-        _check("BatchedViews.near", self.near, 2)
-        _check("BatchedViews.far", self.far, 2)
         if not isinstance(self.index, Tensor) or self.index.is_floating_point() or self.index.ndim != 2:
             raise TypeError("BatchedViews.index must be an integer tensor of shape [B, V]")
-        names = ["images", "extrinsics", "intrinsics", "near", "far", "index"]
-        ts = [self.images, self.extrinsics, self.intrinsics, self.near, self.far, self.index]
+        names = ["images", "extrinsics", "intrinsics", "index"]
+        ts = [self.images, self.extrinsics, self.intrinsics, self.index]
         _same_leading(names, ts, 2)
 
     def float_images(self) -> BatchedViews:

@@ -40,8 +40,8 @@ class Probe(L.LightningModule):
 
 def test_fit_and_resume_restore_the_curriculum(synthetic_shards, tmp_path):
     def make_dm() -> DataModule:
-        return DataModule(root=str(synthetic_shards), image_size=SIZE, batch_size=2, num_workers=0, near=0.1,
-                          far=20.0, gap_initial=(2, 3), gap_final=(6, 8), gap_warmup_steps=4,
+        return DataModule(root=str(synthetic_shards), image_size=SIZE, batch_size=2, num_workers=0,
+                          gap_initial=(2, 3), gap_final=(6, 8), gap_warmup_steps=4,
                           train_batches_per_epoch=3, shuffle_buffer=4)  # fmt: skip
 
     def trainer(steps: int) -> L.Trainer:

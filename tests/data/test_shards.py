@@ -70,7 +70,7 @@ def test_round_trip_chunk_to_batch(tmp_path, scene):
                                samples_per_scene=3, progress=False)  # fmt: skip
     assert manifest["splits"]["test"]["samples"] == 1 and manifest["splits"]["train"]["samples"] == 3
 
-    dm = DataModule(root=str(tmp_path / "out"), image_size=SIZE, num_workers=0, near=0.1, far=20.0)
+    dm = DataModule(root=str(tmp_path / "out"), image_size=SIZE, num_workers=0)
     batch = next(iter(dm.eval_dataset()))
     frames = [1, 6, 2, 3, 5]
     assert batch.scene == ["0a1b2c3d"] and batch.gap.tolist() == [5]
@@ -80,7 +80,6 @@ def test_round_trip_chunk_to_batch(tmp_path, scene):
     intr = torch.cat([batch.context.intrinsics, batch.target.intrinsics], 1)[0]
     assert torch.allclose(extr, s.extrinsics[frames], atol=1e-5)
     assert batch.context.images.dtype == torch.uint8 and batch.context.images.shape == (1, 2, 3, SIZE, SIZE)
-    assert torch.all(batch.context.near == 0.1) and torch.all(batch.target.far == 20.0)
 
     # Images: the source frame's centre crop, resized, within the tolerance of one more JPEG generation.
     got = torch.cat([batch.context.images, batch.target.images], 1)[0].permute(0, 2, 3, 1).float()

@@ -23,7 +23,7 @@ from .conftest import SIZE
 
 
 def module(root, **kw) -> DataModule:
-    args = dict(root=str(root), image_size=SIZE, batch_size=2, num_workers=0, near=0.1, far=20.0,
+    args = dict(root=str(root), image_size=SIZE, batch_size=2, num_workers=0,
                 gap_initial=(2, 8), gap_final=(2, 8), gap_warmup_steps=0, train_batches_per_epoch=3,
                 flip_augment=False, shuffle_buffer=4)  # fmt: skip
     args.update(kw)

@@ -39,7 +39,6 @@ class DataModule(L.LightningDataModule):
         num_workers: DataLoader worker processes per rank.
         num_context_views, num_target_views: views per training sample (evaluation uses every target of the
             evaluation index unless ``eval_num_target_views`` is set).
-        near, far: depth range written into every batch.
         gap_initial, gap_final, gap_warmup_steps: the view-gap curriculum (allowed context gap range in frames
             at step 0 and after the warm-up; paper: 25 -> 90).
         flip_augment: mirror half of the training samples, cameras included.
@@ -56,8 +55,6 @@ class DataModule(L.LightningDataModule):
         num_workers: int = 4,
         num_context_views: int = 2,
         num_target_views: int = 1,
-        near: float = 1.0,
-        far: float = 100.0,
         gap_initial: tuple[int, int] = (25, 25),
         gap_final: tuple[int, int] = (25, 90),
         gap_warmup_steps: int = 150_000,
@@ -71,8 +68,6 @@ class DataModule(L.LightningDataModule):
         super().__init__()
         if image_size < 1 or batch_size < 1 or eval_batch_size < 1 or num_workers < 0:
             raise ValueError("image_size, batch_size and eval_batch_size must be >= 1, num_workers >= 0")
-        if not 0 < near < far:
-            raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
         self.root = Path(root)
         self.image_size = image_size
         self.batch_size = batch_size
@@ -81,7 +76,6 @@ class DataModule(L.LightningDataModule):
         self.num_context_views = num_context_views
         self.num_target_views = num_target_views
         self.eval_num_target_views = eval_num_target_views
-        self.near, self.far = float(near), float(far)
         self.curriculum = GapCurriculum(tuple(gap_initial), tuple(gap_final), gap_warmup_steps)
         self.flip_augment = flip_augment
         self.train_batches_per_epoch = train_batches_per_epoch
@@ -177,8 +171,6 @@ class DataModule(L.LightningDataModule):
             batch_size=self.batch_size if train else self.eval_batch_size,
             num_context_views=self.num_context_views,
             num_target_views=self.num_target_views if train else self.eval_num_target_views,
-            near=self.near,
-            far=self.far,
             flip_augment=self.flip_augment and train,
         )
 

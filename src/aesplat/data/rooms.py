@@ -501,7 +501,7 @@ def generate_dataset(
 ) -> dict:
     """Write a synthetic data set in the chunk format: ``out/{train,test}/*.torch`` + ``index.json``,
     ``out/evaluation_index.json`` (two context views, three targets between them, overlap from depth) and
-    ``out/dataset.json`` (sizes and the recommended context-gap range / near / far).
+    ``out/dataset.json`` (sizes, the recommended context-gap range and depth range for model.net.near / far).
 
     ``scenes`` is the number of training scenes; ``test_scenes`` defaults to half of it (at least 1).
     ``supersample`` s > 1 anti-aliases the images with s x s rays per pixel (about s^2 times slower).

@@ -89,8 +89,6 @@ class StreamConfig:
     batch_size: int
     num_context_views: int = 2
     num_target_views: int | None = 1  # None: every target of the sample (evaluation)
-    near: float = 1.0
-    far: float = 100.0
     flip_augment: bool = False
 
 
@@ -185,13 +183,10 @@ def collate(samples: list[dict], cfg: StreamConfig) -> BatchedExample:
 
     def views(sl: slice) -> BatchedViews:
         images = torch.stack([s["images"][sl] for s in samples])
-        b, v = images.shape[:2]
         return BatchedViews(
             images=images,
             extrinsics=torch.stack([s["extrinsics"][sl] for s in samples]),
             intrinsics=torch.stack([s["intrinsics"][sl] for s in samples]),
-            near=torch.full((b, v), float(cfg.near), dtype=torch.float32),
-            far=torch.full((b, v), float(cfg.far), dtype=torch.float32),
             index=torch.stack([s["index"][sl] for s in samples]),
         )
 

@@ -49,6 +49,8 @@ class ModelConfig:
     num_context_views: int = 2  # GVSRE / WCM widths depend on it
     gvsre_dim: int = 32
     appearance_hidden: int = 128
+    # The depth head's range (z-depth, scene units): the one place a run's depth range lives (model.net.near /
+    # model.net.far set it); the data carry none.
     near: float = 0.1
     far: float = 100.0
     scale_multiplier: float = 0.001
@@ -381,8 +383,8 @@ class NetConfig:
     size: str = "tiny"
     appearance: str = "full"  # full | no_gvsre | no_wcm | i2dc_only | baseline | baseline_i2dc
     sh_degree: int = 4
-    near: float = 0.5
-    far: float = 100.0
+    near: float = ModelConfig.near  # the depth head's range: depth = near·(far/near)^sigmoid(·)
+    far: float = ModelConfig.far
     weights: str | None = None  # local DINOv2/timm, VGGT or aesplat training checkpoint file; never downloaded
     options: dict[str, Any] = field(default_factory=dict)  # any other build_model keyword (rope, ...)
     compile: str = "none"  # none | blocks: torch.compile each encoder / transformer block (first steps slower)
