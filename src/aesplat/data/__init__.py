@@ -1,4 +1,4 @@
-"""Data: synthetic scenes, chunk -> shard conversion, shard streaming and the DataModule (SPEC section 6).
+"""Data: synthetic scenes, chunk -> shard conversion, shard streaming and the DataModule (docs/data.md).
 
 ``DataModule`` is imported lazily: the data-preparation scripts never pay for importing Lightning.
 """

@@ -47,7 +47,7 @@ from .skip_guard import SkipGuard
 
 @dataclass
 class RenderConfig:
-    """Rasterizer settings (SPEC section 4)."""
+    """Rasterizer settings (docs/rendering.md)."""
 
     backend: str = "auto"  # auto | torch | gsplat
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)

@@ -28,7 +28,7 @@ _NO_DECAY_WORDS = ("norm", "bias", "token", "pos_embed", "register", "embedding"
 
 @dataclass
 class OptimConfig:
-    """Optimizer and schedule settings (SPEC section 5)."""
+    """Optimizer and schedule settings (docs/training.md, "What a training step does")."""
 
     lr: float = 1e-4  # base learning rate (`rest`)
     appearance_lr: float = 3e-4  # view-dependent head + GVSRE MLP
