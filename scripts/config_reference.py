@@ -73,8 +73,21 @@ def _default(value: Any) -> str:
     return yaml.safe_dump(value, default_flow_style=True, width=1000).strip().removesuffix("...").strip()
 
 
+# Meanings of fields whose line in the code carries no comment (kept short; the code is the reference).
+UNCOMMENTED = {
+    "NetConfig.size": "size preset: tiny (about 2 M parameters, CPU), base (ViT-B/14), large (VGGT's shape)",
+    "NetConfig.sh_degree": "SH degree of every Gaussian's colour (i2dc_only uses 0)",
+    "NetConfig.near": "the depth head's range: nearest depth",
+    "NetConfig.far": "the depth head's range: farthest depth",
+    "RenderConfig.background": "RGB in [0, 1] behind the Gaussians",
+}
+
+
 def _rows_of_dataclass(cls: type) -> list[tuple[str, str, str, str]]:
-    comments = _field_comments(cls)
+    comments = {
+        **{k.split(".", 1)[1]: v for k, v in UNCOMMENTED.items() if k.startswith(f"{cls.__name__}.")},
+        **{k: v for k, v in _field_comments(cls).items() if v},
+    }
     documented = _docstring_entries(cls.__doc__ or "")
     hints = typing.get_type_hints(cls)
     rows = []
