@@ -223,7 +223,8 @@ def markdown() -> str:
         out += ["| key | type | default | meaning |", "| --- | --- | --- | --- |"]
         for key, type_name, default, meaning in rows:
             defaults[f"{section}.{key}"] = default
-            out.append(f"| `{key}` | `{_cell(type_name)}` | `{_cell(default)}` | {_cell(meaning)} |")
+            shown_type = type_name.replace(" | ", " or ")  # a pipe inside a code span would show its escape
+            out.append(f"| `{key}` | `{shown_type}` | `{_cell(default)}` | {_cell(meaning)} |")
         out.append("")
     return "\n".join(out + _shipped_markdown(defaults))
 

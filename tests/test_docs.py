@@ -251,3 +251,11 @@ def test_config_reference_covers_every_config_field():
     # The shipped configs' values appear beside the defaults: conf/demo.yaml trains 600 steps.
     demo_row = next(line for line in text.splitlines() if line.startswith("| `trainer.max_steps` |"))
     assert "`600`" in demo_row
+
+
+def test_readme_stays_an_entry_point():
+    """At most 250 lines, the two commands first: everything else belongs on a docs page."""
+    lines = (REPO / "README.md").read_text().splitlines()
+    assert len(lines) <= 250, f"README.md has {len(lines)} lines; move detail to a page under docs/"
+    commands = [line.split("#")[0].strip() for line in lines if line.startswith("make ")]
+    assert commands[:2] == ["make demo", "make test"], commands[:2]
