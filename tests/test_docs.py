@@ -259,3 +259,20 @@ def test_readme_stays_an_entry_point():
     assert len(lines) <= 250, f"README.md has {len(lines)} lines; move detail to a page under docs/"
     commands = [line.split("#")[0].strip() for line in lines if line.startswith("make ")]
     assert commands[:2] == ["make demo", "make test"], commands[:2]
+
+
+def test_the_docs_build_puts_the_reference_into_the_configuration_page():
+    """scripts/mkdocs_hooks.py replaces the marker of docs/configuration.md, and refuses a page without it."""
+    from types import SimpleNamespace
+
+    spec = importlib.util.spec_from_file_location("mkdocs_hooks", REPO / "scripts" / "mkdocs_hooks.py")
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
+    page = SimpleNamespace(file=SimpleNamespace(src_uri="configuration.md"))
+    source = (REPO / "docs" / "configuration.md").read_text()
+    built = hooks.on_page_markdown(source, page, None, None)
+    assert hooks.MARKER not in built and "### `model.optim`" in built
+    other = SimpleNamespace(file=SimpleNamespace(src_uri="training.md"))
+    assert hooks.on_page_markdown("text", other, None, None) == "text"
+    with pytest.raises(ValueError, match="config-reference"):
+        hooks.on_page_markdown(source.replace(hooks.MARKER, ""), page, None, None)
