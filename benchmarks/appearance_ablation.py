@@ -11,7 +11,7 @@
    seeds, and pose-free (``model.cameras: predicted``) on the specular set with ``--free-seeds`` seeds; each
    with ``aesplat fit`` then ``aesplat test`` (run in this process) from ``conf/appearance_ablation.yaml``.
    Same data, steps and settings for every run; the seed sets the initialisation and the data order.
-3. Report, under ``--out`` (default benchmarks/ablation/): ``runs.csv`` (one line per run), ``table.csv`` and
+3. Report, under ``--out`` (default docs/results/ablation/): ``runs.csv`` (one line per run), ``table.csv`` and
    ``table.md`` (per set, camera source and row: mean and 95 % t-interval over seeds of PSNR on all, highlight
    and non-highlight pixels and SSIM, and the paired per-seed difference to ``full`` with its interval; and
    what the view-dependent part learned: the energy of the predicted higher-order SH coefficients on the test
@@ -346,7 +346,7 @@ def write_report(
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", default=str(REPO / "benchmarks" / "ablation"), help="report folder")
+    p.add_argument("--out", default=str(REPO / "docs" / "results" / "ablation"), help="report folder")
     p.add_argument("--work", default=str(REPO / "outputs" / "ablation"), help="data and checkpoints")
     p.add_argument("--config", default="conf/appearance_ablation.yaml", help="base config of every run")
     p.add_argument("--rows", nargs="+", default=list(ROWS), choices=ROWS, help="appearance rows (first: full)")

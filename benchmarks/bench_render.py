@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_render.py [--quick] [--repeats N] [--compile] [--backend torch]
 
-Prints markdown tables and writes ``benchmarks/render_tradeoffs.png``. Uses 2 CPU threads. Timings are
+Prints markdown tables and writes ``docs/results/render_tradeoffs.png``. Uses 2 CPU threads. Timings are
 medians over repeats; on a shared machine they are noisy, so compare rows from the same run.
 """
 
@@ -232,7 +232,11 @@ def main() -> None:
     parser.add_argument(
         "--sections", default="reference,effects,scaling,tradeoffs", help="comma-separated subset"
     )
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "render_tradeoffs.png")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path(__file__).resolve().parents[1] / "docs" / "results" / "render_tradeoffs.png",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     repeats = args.repeats or (1 if args.quick else 5)

@@ -33,11 +33,11 @@ DEFAULT_RUN_DIR = "outputs/run"
 class WandbConfig:
     """Weights & Biases settings; the run id is fixed per run directory (resumes continue the same run)."""
 
-    project: str = "aesplat"
-    entity: str | None = None
+    project: str = "aesplat"  # wandb project
+    entity: str | None = None  # wandb team or user; default: your wandb default
     name: str | None = None  # display name; default: the run directory's name
     mode: str = "auto"  # auto (online if reachable, else offline) | online | offline | disabled
-    tags: list[str] = field(default_factory=list)
+    tags: list[str] = field(default_factory=list)  # wandb run tags
 
 
 def _lightning_cli():

@@ -3,7 +3,7 @@
 torch's default intra-op pool has one thread per core of the machine and spins while it waits for work. On a
 shared machine (a 2-core VM with other jobs, a SLURM allocation smaller than the node) those threads fight
 the data-loader workers and every other process for the same cores, and a step can take 2-20x longer
-(benchmarks/RESULTS.md, "Thread policy"). So the commands pick the number themselves:
+(docs/results/training-speed.md). So the commands pick the number themselves:
 
     intra-op threads = usable cores - data-loader workers, at least 1
 

@@ -1,4 +1,4 @@
-"""`aesplat bench`: what accuracy costs in time, for every knob that trades one for the other.
+"""`aesplat bench`: what accuracy costs in time, for every knob that trades one for the other (docs/bench.md).
 
     aesplat bench --ckpt CKPT [--out DIR]
 

@@ -1,4 +1,4 @@
-"""Typed containers passed between modules. Nothing passes loose tuples.
+"""Typed containers passed between modules (docs/design.md, "Conventions"). Nothing passes loose tuples.
 
 Each container checks shapes and dtypes when built and names the offending field in its error.
 """

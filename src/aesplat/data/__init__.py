@@ -1,4 +1,4 @@
-"""Data: synthetic rooms, chunk -> shard conversion, shard streaming and the DataModule.
+"""Data: synthetic scenes, chunk -> shard conversion, shard streaming and the DataModule (docs/data.md).
 
 ``DataModule`` is imported lazily: the data-preparation scripts never pay for importing Lightning.
 """

@@ -1,4 +1,4 @@
-"""pixelSplat-style ``*.torch`` chunks: the source format RealEstate10K / ACID users have.
+"""pixelSplat-style ``*.torch`` chunks: the source format RealEstate10K / ACID users have (docs/data.md).
 
 A chunk is a list of scenes ``{url, timestamps int64[F], cameras float32[F, 18], images: list of uint8
 tensors holding JPEG bytes, key}``. A camera row is fx, fy, cx, cy (normalised), 0, 0, then the 3x4

@@ -1,4 +1,4 @@
-"""View-gap curriculum: the allowed context-frame gap grows with the global step."""
+"""View-gap curriculum: the allowed context-frame gap grows with the global step (docs/data.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The LightningDataModule: shards -> ``BatchedExample`` streams for fit / validate / test.
+"""The LightningDataModule: shards -> ``BatchedExample`` streams for fit / validate / test (docs/data.md).
 
 Plain constructor arguments, so LightningCLI builds it from YAML. Rank and world size come from the trainer in
 ``setup`` (or ``set_distributed`` in tests), never from environment variables. The training DataLoader writes

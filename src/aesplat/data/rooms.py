@@ -1,4 +1,4 @@
-"""Synthetic multi-view scenes: ray-cast analytic rooms along real-estate-like camera paths.
+"""Synthetic multi-view scenes: ray-cast analytic rooms along real-estate-like camera paths (docs/data.md).
 
 An independent renderer (not the Gaussian rasterizer), so it can check the whole pipeline. A scene is a room
 (six textured planes) holding boxes and spheres; the camera walks forward and turns like a house-tour video.

@@ -1,4 +1,4 @@
-"""Chunk -> WebDataset shard conversion.
+"""Chunk -> WebDataset shard conversion (docs/data.md).
 
 One source chunk becomes one tar shard per split, written to a temporary name and renamed when complete, with
 a sidecar ``*.json`` (counts, skips, SHA-256). A rerun skips every shard whose sidecar matches its tar, so an

@@ -1,4 +1,4 @@
-"""Streaming shards into ``BatchedExample`` batches, split explicitly by rank and worker.
+"""Streaming shards into ``BatchedExample`` batches, split explicitly by rank and worker (docs/data.md).
 
 - Training: every (rank, worker) resamples its shards forever through a shuffle buffer and yields exactly its
   share of ``batches_per_rank`` batches, so every rank sees the same number of batches (no DDP hang).

@@ -1,4 +1,4 @@
-"""Pinhole cameras in the project's one convention.
+"""Pinhole cameras in the project's one convention (docs/design.md, "Conventions").
 
 OpenCV axes (x right, y down, z forward); extrinsics are camera-to-world 4x4; intrinsics are 3x3
 *normalised* (fx, cx divided by the width, fy, cy by the height); pixel centres sit at (u + 0.5, v + 0.5).

@@ -140,7 +140,7 @@ def _quat_multiply(a: Tensor, b: Tensor) -> Tensor:
 
 
 class AESplatModel(nn.Module):
-    """Pose-free feed-forward Gaussian splatting with decoupled appearance (see the README section "Model").
+    """Pose-free feed-forward Gaussian splatting with decoupled appearance (docs/design.md).
 
     forward(context_images [B, Vc, 3, H, W], target_images [B, Vt, 3, H, W] | None) -> ModelOutput, images
     float in [0, 1], H and W multiples of the patch size (14 unless ``patch_size`` is set), Vc >= 2. The
@@ -412,7 +412,7 @@ class NetConfig:
             "Give a local checkpoint, e.g. VGGT-1B (facebook/VGGT-1B) or DINOv2 (facebookresearch/dinov2):",
             "  --model.net.weights /path/to/vggt_1B.pt "
             "--model.net.options '{encoder_registers: 4, num_register_tokens: 4}'",
-            "README section 'Pretrained weights' says where they come from and which formats load.",
+            "docs/training.md, 'Pretrained weights', says where they come from and which formats load.",
         ]
         rule = "=" * 100
         return "\n".join(["", rule, *lines, rule])

@@ -1,4 +1,4 @@
-"""The one rasterizer interface and the registry of backends.
+"""The one rasterizer interface (docs/rendering.md) and the registry of backends.
 
 ``render`` checks inputs, picks the working precision (float32, or float64 when an input is float64; autocast
 is off inside), resolves the background and the SH degree actually in use, and hands over to a backend:
@@ -146,7 +146,7 @@ def render(
     backend: str = "auto",
     **options,
 ) -> RenderOutput:
-    """Render Gaussians into V cameras per batch element (gsplat "classic" semantics).
+    """Render Gaussians into V cameras per batch element (gsplat "classic" semantics, docs/rendering.md).
 
     Returns colour [B, V, 3, H, W] over the background, expected z-depth [B, V, 1, H, W] (0 where nothing
     is seen) and alpha [B, V, 1, H, W]. Differentiable with respect to the Gaussians, both camera matrices

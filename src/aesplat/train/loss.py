@@ -37,8 +37,8 @@ VGG16_FILE = "vgg16-397923af.pth"  # torchvision's VGG16_Weights.IMAGENET1K_V1
 class LossConfig:
     """Loss weights; ``lpips_weight: 0`` opts out of LPIPS (then the VGG weights are optional)."""
 
-    mse_weight: float = 1.0
-    lpips_weight: float = 0.05
+    mse_weight: float = 1.0  # weight of the MSE between render and target image
+    lpips_weight: float = 0.05  # weight of LPIPS (VGG16); 0 opts out, then its weights are optional
     context_weight: float = 0.0  # > 0: also render the context views and add their loss with this weight
     blur_sigma: float = 0.0  # coarse to fine: Gaussian blur (pixels) of render and image at step 0 ...
     blur_steps: int = 0  # ... shrinking linearly to no blur at this step

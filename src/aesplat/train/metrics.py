@@ -1,4 +1,4 @@
-"""Image and pose metrics for validation and test.
+"""Image and pose metrics for validation and test (docs/evaluation.md).
 
 Image metrics are per image (data range 1) so that PSNR is averaged over images, not computed on a pooled
 MSE. Pose errors compare predicted and ground-truth poses *relative to context view 0*, so they are

@@ -28,20 +28,20 @@ _NO_DECAY_WORDS = ("norm", "bias", "token", "pos_embed", "register", "embedding"
 
 @dataclass
 class OptimConfig:
-    """Optimizer and schedule settings."""
+    """Optimizer and schedule settings (docs/training.md, "What a training step does")."""
 
     lr: float = 1e-4  # base learning rate (`rest`)
     appearance_lr: float = 3e-4  # view-dependent head + GVSRE MLP
     backbone_lr_scale: float = 0.1  # applied only when pretrained backbone weights were loaded
-    weight_decay: float = 0.05
-    betas: tuple[float, float] = (0.9, 0.95)
-    warmup_steps: int = 2000
+    weight_decay: float = 0.05  # AdamW's, on matrices and kernels only (not norms, biases, tokens)
+    betas: tuple[float, float] = (0.9, 0.95)  # AdamW's moment decay rates
+    warmup_steps: int = 2000  # linear warm-up from 0, then the cosine
     total_steps: int | None = None  # length of the cosine; None = trainer.max_steps
     min_lr_ratio: float = 0.0  # the cosine ends at min_lr_ratio * each group's peak rate
     grad_clip: float = 0.5  # gradient-norm clipping; 0 disables
     # Non-finite steps are skipped; the run stops when skipping is no longer rare (train/skip_guard.py).
     max_skipped_fraction: float = 0.1  # stop when more than this share of the last `skip_window` steps skipped
-    skip_window: int = 100
+    skip_window: int = 100  # steps over which max_skipped_fraction is judged
     max_consecutive_skips: int = 10  # stop after this many skipped steps in a row; 0 disables
     anomaly_report: bool = True  # re-run the first skipped step under anomaly detection and report the op
     impl: str = "auto"  # auto | fused | foreach | for_loop; auto = fused on CUDA and CPU, else foreach
