@@ -148,10 +148,11 @@ def test_load_checkpoint_errors(tmp_path):
     with pytest.raises(ValueError, match="not an aesplat checkpoint"):
         load_checkpoint(tmp_path / "other.ckpt")
     (tmp_path / "text.ckpt").write_text("hello")
-    with pytest.raises(ValueError, match="not a readable torch checkpoint"):
+    with pytest.raises(ValueError, match="text.ckpt is not a torch file"):
         load_checkpoint(tmp_path / "text.ckpt")
     with pytest.raises(SystemExit, match="aesplat predict: .*not an aesplat checkpoint"):
-        main(["--ckpt", str(tmp_path / "other.ckpt"), "--out", str(tmp_path), "a.png", "b.png"])
+        main(["--ckpt", str(tmp_path / "other.ckpt"), "--out", str(tmp_path / "out"), "a.png", "b.png"])
+    assert not (tmp_path / "out").exists()
 
 
 # ----------------------------------------------------------------------------------------------- end to end
