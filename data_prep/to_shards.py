@@ -17,10 +17,18 @@ import json
 import sys
 
 from aesplat.data.shards import convert_dataset, verify_shards
+from aesplat.errors import UserError
 from aesplat.threads import apply_thread_policy
 
 
 def main(argv: list[str] | None = None) -> None:
+    try:
+        convert(argv)
+    except UserError as err:  # a missing source or manifest: one line, no traceback
+        sys.exit(f"to_shards.py: {err}")
+
+
+def convert(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--src", help="chunk folder with train/ and test/ (pixelSplat layout)")
     p.add_argument("--out", required=True, help="shard folder to write")

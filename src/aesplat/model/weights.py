@@ -98,20 +98,15 @@ def read_torch_file(path: str | Path, what: str) -> object:
     zipped = zipfile.is_zipfile(path)
     try:  # a zip (the format of torch.save) is memory-mapped: a multi-GB file is not read in full
         return torch.load(path, map_location="cpu", weights_only=True, mmap=zipped)
-    except pickle.UnpicklingError as err:
-        if "Weights only load failed" in str(err):
+    except Exception as err:  # noqa: BLE001 - torch fails on a damaged file with anything from KeyError on
+        if isinstance(err, pickle.UnpicklingError) and "global" in str(err):  # a class the safe loader refuses
             raise UserError(
                 f"{what} file {path} holds Python objects besides tensors; it is not loaded, since that could "
                 "run code from the file: give a checkpoint written by `aesplat fit`, scripts/export_weights.py "
                 "or a plain state dict"
             ) from None
-        raise UserError(f"{what} file {path} is not a torch file (it cannot be unpickled)") from None
-    except Exception:  # noqa: BLE001 - torch fails on a damaged file with anything from KeyError to RuntimeError
-        damage = (
-            "truncated or corrupt (a damaged zip archive)"
-            if zipped or _starts_like_zip(path)
-            else "not a torch file"
-        )
+        zip_like = zipped or _starts_like_zip(path)
+        damage = "truncated or corrupt (a damaged zip archive)" if zip_like else "not a torch file"
         raise UserError(f"{what} file {path} is {damage}; copy it again or give another file") from None
 
 
