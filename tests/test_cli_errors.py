@@ -202,3 +202,12 @@ def test_evaluation_folders_are_new_and_the_latest_link_moves(tmp_path, monkeypa
     assert os.readlink(tmp_path / "test-latest") == second.name  # relative: the run folder can move
     monkeypatch.setenv("SLURM_JOB_ID", "77")
     assert evaluation_dir(tmp_path, "validate") == tmp_path / "validate-job77"
+
+
+def test_a_value_the_model_refuses_is_one_line(shards, capsys, tmp_path):
+    code, err = aesplat(capsys, "fit", *common(shards, tmp_path / "run"), "--model.net.size", "huge",
+                        "--seed_everything", "false")  # fmt: skip
+    assert code == 1 and one_line(err, after_start=True) == (
+        "aesplat fit: invalid configuration: unknown model size 'huge'; choose one of tiny, base, large"
+    )
+    assert not (tmp_path / "run").exists()

@@ -171,6 +171,14 @@ def _lightning_cli():
                     cfg[key].dirpath = str(Path(run_dir) / "checkpoints")
             apply_thread_policy(cfg.data.num_workers, cfg.threads, processes=_local_processes(cfg.trainer))
 
+        def instantiate_classes(self) -> None:
+            try:
+                super().instantiate_classes()
+            except UserError:
+                raise
+            except ValueError as err:  # a config value the model or the data refuse (size, near/far, ...)
+                raise UserError(f"invalid configuration: {err}") from err
+
         def instantiate_trainer(self, **kwargs):
             cfg = self.config_init[self.subcommand]
             if cfg.trainer.get("logger") in (None, True):
