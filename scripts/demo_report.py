@@ -5,8 +5,9 @@
         [--bench outputs/demo/bench] [--timings outputs/demo/timings.csv] [--out outputs/demo]
 
 Reads the run directory `aesplat fit` wrote (config.yaml, metrics.csv from the CSV logger, checkpoints/, and
-test-latest/ from `aesplat test`: the link to its newest test-<UTC time>/ folder), the untrained model's `aesplat test` output (--initial), and optionally an
-`aesplat bench` folder and the stage timings the Makefile recorded. Writes into --out:
+test-latest/: the link to the newest test-<UTC time>/ folder of `aesplat test`), the untrained model's
+`aesplat test` output (--initial), and optionally an `aesplat bench` folder and the stage timings the Makefile
+recorded. Writes into --out:
 
     REPORT.md          metrics of the untrained and the trained model, the PSNR gain, timings, figures
     render_grid.png    per test scene: context views | target | untrained render | trained render | depth

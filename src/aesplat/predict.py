@@ -11,8 +11,10 @@ writes
     DIR/depth/            predicted depth per input view: colour-mapped PNG and raw float32 .npy
     DIR/novel/            frames along a path through the predicted input cameras, and trajectory.gif
 
+DIR is written whole: into a hidden folder beside it, renamed into place once everything is written (a
+failure leaves DIR as it was). A non-empty DIR is refused unless ``--overwrite``, which replaces it as a whole.
 A checkpoint trained with ``model.cameras: dataset`` is refused: its camera head never trained, and images
-come without poses here.
+come without poses here. Every refusal is one line (see docs/troubleshooting.md).
 """
 
 from __future__ import annotations
