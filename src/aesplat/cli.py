@@ -89,8 +89,10 @@ def _lightning_cli():
         def save_config(self, trainer, pl_module, stage: str) -> None:
             folder = Path(trainer.default_root_dir) if stage == "fit" else pl_module.test_output_dir
             folder.mkdir(parents=True, exist_ok=True)
-            self.parser.save(self.config, str(folder / self.config_filename), skip_none=False, overwrite=True,
-                             multifile=self.multifile)  # fmt: skip
+            with warnings.catch_warnings():  # skip_none as Lightning passes it: None values kept
+                warnings.filterwarnings("ignore", message=r"\s*skip_none parameter was deprecated")
+                self.parser.save(self.config, str(folder / self.config_filename), skip_none=False,
+                                 overwrite=True, multifile=self.multifile)  # fmt: skip
 
     class AESplatCLI(LightningCLI):
         @staticmethod
