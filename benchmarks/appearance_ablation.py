@@ -147,7 +147,7 @@ def train_and_test(run: Run, shards: Path, work: Path, settings: Settings) -> No
 def result(run: Run, work: Path, settings: Settings) -> dict | None:
     """A finished run's metrics and timing, or None if it has not finished. Another setting is an error."""
     folder = run.directory(work)
-    summary = folder / "test" / "summary.json"
+    summary = folder / "test-latest" / "summary.json"  # the newest `aesplat test` of the run
     if not summary.exists():
         return None
     _check_settings(folder, settings)

@@ -24,10 +24,18 @@ import sys
 
 from aesplat.data.capture_shards import convert_captures
 from aesplat.data.shards import convert_dataset, verify_shards
+from aesplat.errors import UserError
 from aesplat.threads import apply_thread_policy
 
 
 def main(argv: list[str] | None = None) -> None:
+    try:
+        convert(argv)
+    except UserError as err:  # a missing source or manifest: one line, no traceback
+        sys.exit(f"to_shards.py: {err}")
+
+
+def convert(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--src", help="chunk folder with train/ and test/ (pixelSplat layout), or capture folder")
     p.add_argument(

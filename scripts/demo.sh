@@ -71,9 +71,10 @@ stage "aesplat fit" "$AESPLAT" fit "${args[@]}" --trainer.default_root_dir "$run
 stage "aesplat test (trained)" "$AESPLAT" test "${args[@]}" --trainer.default_root_dir "$run" \
     --trainer.logger false --ckpt_path "$ckpt"
 
-report=(--run-dir "$run" --initial "$DEMO_DIR/initial/test" --bench "$DEMO_DIR/bench" --timings "$times"
+# Each `aesplat test` writes into a folder of its own, RUN_DIR/test-<UTC time>; test-latest links the newest.
+report=(--run-dir "$run" --initial "$DEMO_DIR/initial/test-latest" --bench "$DEMO_DIR/bench" --timings "$times"
     --out "$DEMO_DIR")
-[[ -n $weights ]] && report+=(--random-init "$DEMO_DIR/random/test")
+[[ -n $weights ]] && report+=(--random-init "$DEMO_DIR/random/test-latest")
 if [[ -n $diag_pid ]]; then
     echo "demo: waiting for the diagnostic (log: $posed/log.txt)"
     if ! wait "$diag_pid"; then
@@ -83,7 +84,7 @@ if [[ -n $diag_pid ]]; then
         exit 1
     fi
     diag_pid=
-    report+=(--posed-initial "$posed/initial/test" --posed-trained "$posed/run/test")
+    report+=(--posed-initial "$posed/initial/test-latest" --posed-trained "$posed/run/test-latest")
 fi
 # After the diagnostic: the bench times renders, which a fit beside it would slow down.
 stage "aesplat bench" "$AESPLAT" bench --ckpt "$ckpt" --out "$DEMO_DIR/bench" --scenes 2 --repeats 3

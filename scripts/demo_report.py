@@ -1,12 +1,13 @@
 #!/usr/bin/env python
 """Write the `make demo` report: what the CPU demo run learned, how long it took, and what accuracy costs.
 
-    python scripts/demo_report.py --run-dir outputs/demo/run --initial outputs/demo/initial/test \
+    python scripts/demo_report.py --run-dir outputs/demo/run --initial outputs/demo/initial/test-latest \
         [--bench outputs/demo/bench] [--timings outputs/demo/timings.csv] [--out outputs/demo]
 
 Reads the run directory `aesplat fit` wrote (config.yaml, metrics.csv from the CSV logger, checkpoints/, and
-test/ from `aesplat test`), the untrained model's `aesplat test` output (--initial), and optionally an
-`aesplat bench` folder and the stage timings the Makefile recorded. Writes into --out:
+test-latest/: the link to the newest test-<UTC time>/ folder of `aesplat test`), the untrained model's
+`aesplat test` output (--initial), and optionally an `aesplat bench` folder and the stage timings the Makefile
+recorded. Writes into --out:
 
     REPORT.md          metrics of the untrained and the trained model, the PSNR gain, timings, figures
     render_grid.png    per test scene: context views | target | untrained render | trained render | depth
@@ -363,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
         "--initial", type=Path, required=True, help="`aesplat test` output of the untrained model"
     )
     parser.add_argument("--trained", type=Path, default=None, help="`aesplat test` output of the trained model "
-                        "(default: RUN_DIR/test)")  # fmt: skip
+                        "(default: RUN_DIR/test-latest)")  # fmt: skip
     parser.add_argument("--bench", type=Path, default=None, help="`aesplat bench` output folder, if it ran")
     parser.add_argument("--timings", type=Path, default=None, help="CSV stage,seconds written by `make demo`")
     parser.add_argument("--random-init", type=Path, default=None, help="`aesplat test --model.net.weights "
@@ -381,7 +382,7 @@ def main(argv: list[str] | None = None) -> int:
     device = torch.device("cpu")
     initial = read_summary(args.initial)
     random_init = read_summary(args.random_init) if args.random_init else None
-    trained = read_summary(args.trained or args.run_dir / "test")
+    trained = read_summary(args.trained or args.run_dir / "test-latest")
     ckpt = find_checkpoint(args.run_dir)
     loaded = load_checkpoint(ckpt, device)
     config = run_config(ckpt) or {}

@@ -84,7 +84,7 @@ def test_two_run_grid_reports_and_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr(runner, "train_and_test", lambda run, *a: calls.append(run))
     runner.main(args)
     assert calls == []
-    (work / "runs" / "specular_dataset" / "full" / "seed0" / "test" / "summary.json").unlink()
+    (work / "runs" / "specular_dataset" / "full" / "seed0" / "test-latest" / "summary.json").unlink()
     with pytest.raises(RuntimeError, match="without"):  # the stub writes no result, which is an error
         runner.main(args)
     assert calls == [runner.Run("specular", "dataset", "full", 0)]

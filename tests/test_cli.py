@@ -49,9 +49,17 @@ def test_smoke_fit_then_test_writes_checkpoint_csv_and_json(shards, tmp_path):
     ckpt = torch.load(last, weights_only=True, map_location="cpu")
     assert ckpt["global_step"] == 4
     assert (run_dir / "config.yaml").exists() and (run_dir / "wandb_run_id").exists()
+    config = (run_dir / "config.yaml").read_text()
 
-    run_aesplat("test", *common, "--ckpt_path", str(last))
-    out = run_dir / "test"
+    # The test writes its config and results into a folder of its own, and names the flag the checkpoint
+    # overrides; the training run's config stays as it was (predict reads the image size from it).
+    proc = run_aesplat("test", *common, "--ckpt_path", str(last), "--data.image_size", "42",
+                       "--model.net.sh_degree", "1")  # fmt: skip
+    assert "--model.net.sh_degree 1 has no effect: the checkpoint" in proc.stderr
+    assert (run_dir / "config.yaml").read_text() == config
+    out = run_dir / "test-latest"
+    assert out.is_symlink() and out.resolve().parent == run_dir.resolve()
+    assert out.resolve().name.startswith("test-20") and "image_size: 42" in (out / "config.yaml").read_text()
     with open(out / "per_scene.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 and all(float(r["psnr"]) > 5 for r in rows)
@@ -101,7 +109,7 @@ def test_posed_fit_saves_loads_and_tests_through_plain_test(shards, tmp_path):
     assert "cameras: dataset" in (run_dir / "config.yaml").read_text()
 
     run_aesplat("test", *common, "--ckpt_path", str(last))  # the config says predicted; the checkpoint wins
-    summary = json.loads((run_dir / "test" / "summary.json").read_text())
+    summary = json.loads((run_dir / "test-latest" / "summary.json").read_text())
     assert summary["cameras"] == "dataset" and summary["num_scenes"] == 2 and summary["metrics"]["psnr"] > 5
     assert summary["metrics"]["rot_err_deg"] is None  # no pose was predicted, so none is scored
 

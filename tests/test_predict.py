@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -148,10 +149,11 @@ def test_load_checkpoint_errors(tmp_path):
     with pytest.raises(ValueError, match="not an aesplat checkpoint"):
         load_checkpoint(tmp_path / "other.ckpt")
     (tmp_path / "text.ckpt").write_text("hello")
-    with pytest.raises(ValueError, match="not a readable torch checkpoint"):
+    with pytest.raises(ValueError, match="text.ckpt is not a torch file"):
         load_checkpoint(tmp_path / "text.ckpt")
     with pytest.raises(SystemExit, match="aesplat predict: .*not an aesplat checkpoint"):
-        main(["--ckpt", str(tmp_path / "other.ckpt"), "--out", str(tmp_path), "a.png", "b.png"])
+        main(["--ckpt", str(tmp_path / "other.ckpt"), "--out", str(tmp_path / "out"), "a.png", "b.png"])
+    assert not (tmp_path / "out").exists()
 
 
 # ----------------------------------------------------------------------------------------------- end to end
@@ -268,3 +270,118 @@ def test_predict_refuses_a_checkpoint_trained_with_the_data_sets_cameras(tmp_pat
     with pytest.raises(SystemExit, match="trained with model.cameras=dataset"):
         main(["--ckpt", str(ckpt), "--out", str(tmp_path / "out"), str(good), str(good)])
     assert not (tmp_path / "out").exists()
+
+
+# ----------------------------------------------------------------------------------------------- input rules
+
+
+def test_16_bit_images_keep_their_range(tmp_path):
+    ramp = np.tile(np.linspace(0, 65535, 28).round().astype(np.uint16), (28, 1))  # left black, right white
+    path = tmp_path / "grey16.png"
+    Image.fromarray(ramp).save(path)
+    assert Image.open(path).mode.startswith("I")
+    out = load_image(path, 28)
+    np.testing.assert_allclose(out[0].numpy(), ramp / 65535.0, atol=2e-3)  # scaled, not clipped at 255
+    assert (out[0] > 0.99).float().mean() < 0.1  # (clipping turned 91 % of such a picture white)
+    assert torch.equal(out[0], out[1]) and torch.equal(out[1], out[2])
+
+
+def test_transparent_pixels_are_composited_over_the_background(tmp_path):
+    rgba = np.zeros((28, 28, 4), np.uint8)
+    rgba[..., 0] = 255  # red, opaque on the left half, transparent on the right
+    rgba[:, :14, 3] = 255
+    path = tmp_path / "cutout.png"
+    Image.fromarray(rgba, mode="RGBA").save(path)
+    out = load_image(path, 28, background=(0.0, 0.0, 1.0))
+    assert out[0, :, :12].min() > 0.99 and out[2, :, :12].max() < 0.01  # opaque: its own colour
+    assert out[0, :, 16:].max() < 0.01 and out[2, :, 16:].min() > 0.99  # transparent: the background
+
+
+def test_exif_orientation_is_applied(tmp_path):
+    # Stored 40 wide x 20 high, top half white; EXIF 6 says "rotate 90 degrees clockwise to view": upright it
+    # is 20 x 40 with the white half on the right, which the centre crop keeps.
+    stored = np.zeros((20, 40, 3), np.uint8)
+    stored[:10] = 255
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    path = tmp_path / "phone.jpg"
+    Image.fromarray(stored).save(path, exif=exif, quality=100)
+    out = load_image(path, 14)
+    assert out[:, :, 10:].mean() > 0.9 and out[:, :, :4].mean() < 0.1
+
+
+def test_images_too_small_for_the_model_are_refused_with_the_minimum(tmp_path):
+    tiny = save_png(tmp_path / "dot.png", np.zeros((1, 1, 3)))
+    expected = r"is 1x1 pixels: its shorter side must be at least 14 for this model's 28-pixel input \(images"
+    with pytest.raises(ValueError, match=expected + r" are upscaled by at most 2x\)"):
+        load_image(tiny, 28)
+    assert load_image(save_png(tmp_path / "half.png", np.zeros((14, 20, 3))), 28).shape == (3, 28, 28)
+
+
+# ----------------------------------------------------------------------------------------------- output folder
+
+
+def tree(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_non_empty_output_folder_is_refused_before_the_model_loads(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "gaussians.ply").write_text("an earlier prediction")
+    images = [str(save_png(tmp_path / f"{i}.png", np.zeros((28, 28, 3)))) for i in range(2)]
+    # The checkpoint does not exist: the refusal comes first, before anything is loaded.
+    with pytest.raises(SystemExit) as info:
+        main(["--ckpt", str(tmp_path / "none.ckpt"), "--out", str(out), *images])
+    assert str(info.value) == (
+        f"aesplat predict: --out {out} is not empty; give a new folder, or --overwrite to replace it "
+        "(as a whole)"
+    )
+    assert tree(out) == {"gaussians.ply": b"an earlier prediction"}
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SystemExit, match="is a file, not a folder"):
+        main(["--ckpt", str(tmp_path / "none.ckpt"), "--out", str(tmp_path / "file"), *images])
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write anywhere")
+def test_an_unwritable_output_place_is_refused_before_the_model_loads(tmp_path):
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    images = [str(save_png(tmp_path / f"{i}.png", np.zeros((28, 28, 3)))) for i in range(2)]
+    with pytest.raises(SystemExit, match=f"cannot write in {locked}"):
+        main(["--ckpt", str(tmp_path / "none.ckpt"), "--out", str(locked / "out"), *images])
+
+
+def test_overwrite_replaces_the_folder_whole_and_a_failure_leaves_it_untouched(
+    tiny_ckpt, tmp_path, monkeypatch
+):
+    from aesplat import predict
+
+    out = tmp_path / "out"
+    (out / "novel").mkdir(parents=True)
+    (out / "novel" / "099.png").write_text("a frame of an older, longer run")
+    (out / "cameras.json").write_text("{}")
+    images = [str(save_png(tmp_path / f"{i}.png", np.full((28, 28, 3), 50 * i + 30))) for i in range(2)]
+    args = ["--ckpt", str(tiny_ckpt), "--out", str(out), "--novel-frames", "2", "--no-progress", "--overwrite"]
+    before = tree(out)
+
+    def broken_ply(*_a, **_k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(predict, "write_ply", broken_ply)  # fails after the renders are written
+    with pytest.raises(OSError, match="disk full"):
+        main([*args, *images])
+    assert tree(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["0.png", "1.png", "out"]
+    monkeypatch.undo()
+
+    assert main([*args, *images]) == 0
+    files = tree(out)
+    assert "novel/099.png" not in files and json.loads(files["cameras.json"])["views"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["0.png", "1.png", "out"]  # no partial folder left
+
+
+def test_a_refused_prediction_creates_nothing(tiny_ckpt, tmp_path):
+    good = str(save_png(tmp_path / "good.png", np.zeros((28, 28, 3))))
+    with pytest.raises(SystemExit, match="built for 2 context views, got 3"):
+        main(["--ckpt", str(tiny_ckpt), "--out", str(tmp_path / "out"), good, good, good])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["good.png"]

@@ -9,22 +9,35 @@ fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interp
 and the data, the parser holds four sections: ``checkpoint`` (ModelCheckpoint: best by val/psnr),
 ``last_checkpoint`` (ModelCheckpoint: last.ckpt every N steps), ``throughput`` and ``wandb``, plus ``threads``
 (torch CPU threads; default from ``aesplat.threads``: usable cores minus ``data.num_workers``). Everything
-a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml,
-test/. ``--ckpt_path last`` resumes from the newest of
-checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts fresh when there is none).
-With ``--ckpt_path FILE``, LightningCLI takes the whole ``model`` section from the checkpoint's hyper-parameters
-(``model.cameras`` included), so a checkpoint evaluates as it was trained, whatever the config file says.
+a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml;
+each test / validate writes its config.yaml and results into a folder of its own, ``test-<UTC time>/`` (under
+``model.eval.output_dir`` if set, else the run directory), the newest behind the link ``test-latest``: an
+evaluation never changes the training run's files. ``fit`` refuses a run directory that already holds a run
+unless ``--ckpt_path last`` (resume) or ``--overwrite`` (delete it and start afresh). ``--ckpt_path last``
+resumes from the newest of checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts
+fresh when there is none). With ``--ckpt_path FILE``, LightningCLI takes the ``model`` section from the
+checkpoint's hyper-parameters (``model.cameras`` included), so a checkpoint evaluates as it was trained,
+whatever the config file says; a ``--model.*`` flag that the checkpoint overrides is named on stderr.
+``model.eval`` (where and what an evaluation writes) stays the command's.
+
+The inputs (data root, checkpoint, weights file, run directory) are checked before anything is created or
+loaded; a user's error stops with one line (``AESPLAT_DEBUG=1``: with its traceback), see
+docs/troubleshooting.md.
 """
 
 from __future__ import annotations
 
 import os
+import re
+import shutil
 import signal
 import sys
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from aesplat.errors import MissingFileError, UserError, debug, fail
 
 DEFAULT_RUN_DIR = "outputs/run"
 
@@ -42,8 +55,9 @@ class WandbConfig:
 
 def _lightning_cli():
     """Build the LightningCLI subclass (imports Lightning and the data/model stack only when needed)."""
+    from jsonargparse import ActionYesNo
     from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
+    from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
     from lightning.pytorch.loggers import WandbLogger
 
     from aesplat.data import DataModule
@@ -51,7 +65,34 @@ def _lightning_cli():
     from aesplat.train import AESplatModule
     from aesplat.train.callbacks import Throughput
     from aesplat.train.requeue import RequeueAtStepBoundary
-    from aesplat.train.run_dir import latest_checkpoint, wandb_mode, wandb_run_id
+    from aesplat.train.run_dir import latest_checkpoint, point_latest, wandb_mode, wandb_run_id
+
+    class OneLineParser(LightningArgumentParser):
+        """A command-line or config error is one line (the key and what is wrong), not the usage text."""
+
+        def error(self, message: str, ex: Exception | None = None):
+            if debug() or not self.exit_on_error:
+                return super().error(message, ex)
+            command = (self.prog or "").replace(" [options]", "").split()[-1:] or ["fit"]
+            command = command[0] if command[0] in ("fit", "validate", "test") else "fit|validate|test"
+            hint = f"`aesplat {command} --help` lists the options"
+            print(f"aesplat {command}: {parser_error_line(message)} ({hint})", file=sys.stderr)
+            raise SystemExit(2)  # a malformed command line, as argparse
+
+    class SaveRunConfig(SaveConfigCallback):
+        """config.yaml where the command's outputs go: the run directory (fit), or the evaluation's own folder
+        (test / validate), so an evaluation never rewrites the training run's config."""
+
+        def __init__(self, *args, **kwargs) -> None:
+            super().__init__(*args, **{**kwargs, "save_to_log_dir": False})
+
+        def save_config(self, trainer, pl_module, stage: str) -> None:
+            folder = Path(trainer.default_root_dir) if stage == "fit" else pl_module.test_output_dir
+            folder.mkdir(parents=True, exist_ok=True)
+            with warnings.catch_warnings():  # skip_none as Lightning passes it: None values kept
+                warnings.filterwarnings("ignore", message=r"\s*skip_none parameter was deprecated")
+                self.parser.save(self.config, str(folder / self.config_filename), skip_none=False,
+                                 overwrite=True, multifile=self.multifile)  # fmt: skip
 
     class AESplatCLI(LightningCLI):
         @staticmethod
@@ -83,15 +124,62 @@ def _lightning_cli():
                 "--threads", type=int | None, default=None,
                 help="torch CPU threads (default: usable cores minus data-loader workers; see aesplat.threads)",
             )  # fmt: skip
+            parser.add_argument(
+                "--overwrite", action=ActionYesNo, default=False,
+                help="fit: delete a run directory that holds a run and start afresh (default: refuse)",
+            )  # fmt: skip
+
+        def parse_arguments(self, parser, args) -> None:
+            self.argv = list(sys.argv[1:] if args is None else args)
+            super().parse_arguments(parser, args)
+
+        def _parse_ckpt_path(self) -> None:
+            """Check ``--ckpt_path`` before Lightning reads it; name each ``--model.*`` flag it overrides; keep
+            the command's ``model.eval`` (where and what the evaluation writes)."""
+            sub = self.config.get("subcommand")
+            if not sub:
+                return
+            cfg = self.config[sub]
+            cfg.trainer.default_root_dir = cfg.trainer.default_root_dir or DEFAULT_RUN_DIR
+            ckpt_path = cfg.get("ckpt_path")
+            if ckpt_path and not (sub == "fit" and ckpt_path == "last"):
+                check_lightning_checkpoint(ckpt_path, sub)
+                self._take_model_from_checkpoint(sub, ckpt_path)
+            check_inputs(sub, self.config[sub])  # before the seed is set: a refusal prints nothing else
+
+        def _take_model_from_checkpoint(self, sub: str, ckpt_path: str) -> None:
+            before = self.config[sub].clone()
+            super()._parse_ckpt_path()
+            cfg = self.config[sub]
+            cfg.model.eval = before.model.eval
+            for key in explicit_keys(self.argv, "model."):
+                if key.startswith("model.eval") or before.get(key) == cfg.get(key):
+                    continue
+                print(f"aesplat {sub}: --{key} {before.get(key)} has no effect: the checkpoint {ckpt_path} "
+                      f"sets it to {cfg.get(key)} (with --ckpt_path, the checkpoint's model settings win)",
+                      file=sys.stderr)  # fmt: skip
 
         def before_instantiate_classes(self) -> None:
             cfg = self.config[self.subcommand]
-            run_dir = cfg.trainer.default_root_dir or DEFAULT_RUN_DIR
-            cfg.trainer.default_root_dir = run_dir
+            run_dir = cfg.trainer.default_root_dir
+            if self.subcommand == "fit" and cfg.overwrite and launching_process():
+                clear_run_dir(run_dir)
+            if self.subcommand in ("test", "validate"):
+                cfg.model.eval.output_dir = shared_evaluation_dir(
+                    cfg.model.eval.output_dir or run_dir, self.subcommand
+                )
             for key in ("checkpoint", "last_checkpoint"):
                 if cfg[key].dirpath is None:
                     cfg[key].dirpath = str(Path(run_dir) / "checkpoints")
             apply_thread_policy(cfg.data.num_workers, cfg.threads, processes=_local_processes(cfg.trainer))
+
+        def instantiate_classes(self) -> None:
+            try:
+                super().instantiate_classes()
+            except UserError:
+                raise
+            except ValueError as err:  # a config value the model or the data refuse (size, near/far, ...)
+                raise UserError(f"invalid configuration: {err}") from err
 
         def instantiate_trainer(self, **kwargs):
             cfg = self.config_init[self.subcommand]
@@ -115,7 +203,130 @@ def _lightning_cli():
                 fit["ckpt_path"] = str(found) if found else None
                 print(f"resuming from {found}" if found else "no checkpoint to resume from: starting fresh")
 
-    return AESplatCLI, AESplatModule, DataModule
+        def after_test(self) -> None:
+            self._point_latest()
+
+        def after_validate(self) -> None:
+            self._point_latest()
+
+        def _point_latest(self) -> None:
+            if self.trainer.is_global_zero:
+                folder = self.model.test_output_dir
+                folder.mkdir(parents=True, exist_ok=True)
+                print(f"aesplat {self.subcommand}: results in {folder} (also {point_latest(folder)})")
+
+    return AESplatCLI, AESplatModule, DataModule, OneLineParser, SaveRunConfig
+
+
+# ---------------------------------------------------------------------------------------------------
+# Inputs checked before anything is created or loaded
+
+
+def parser_error_line(message: str) -> str:
+    """The one useful line of a jsonargparse error: the key, and the innermost reason it gives."""
+    lines = [line.strip() for line in message.strip().splitlines() if line.strip()]
+    key = re.match(r'Parser key "([^"]+)":?', lines[0]) if lines else None
+    reason = re.compile(r"not accepted|Expected|Got value|not found|does not|No such|[Uu]nrecogni|[Ii]nvalid")
+    reasons = [line for line in lines[1:] if reason.search(line)]
+    if key and reasons:
+        return f"{key.group(1)}: {reasons[0]}"
+    return lines[0] if lines else message
+
+
+def explicit_keys(argv: Sequence[str], prefix: str) -> list[str]:
+    """Dotted keys given as ``--KEY value`` or ``--KEY=value`` flags on the command line, under ``prefix``."""
+    keys = [a[2:].split("=", 1)[0] for a in argv if a.startswith("--" + prefix)]
+    return [k.removesuffix("+") for k in keys]
+
+
+def launching_process() -> bool:
+    """Whether this is the process a user started (not a DDP rank Lightning or SLURM started beside it)."""
+    return all(os.environ.get(v, "0") == "0" for v in ("LOCAL_RANK", "NODE_RANK", "SLURM_PROCID"))
+
+
+def check_lightning_checkpoint(path: str, command: str) -> None:
+    """``--ckpt_path FILE`` must be a readable Lightning checkpoint; the error names what the file is."""
+    from aesplat.model.weights import KIND_NAMES, checkpoint_kind, read_torch_file
+
+    if command != "fit" and path in ("last", "best"):
+        return
+    if not Path(path).is_file():
+        raise MissingFileError(
+            f"--ckpt_path {path} does not exist: give RUN/checkpoints/last.ckpt of `aesplat fit`"
+            + (
+                ", or `--ckpt_path last` to resume the run in --trainer.default_root_dir"
+                if command == "fit"
+                else ""
+            )
+        )
+    kind = checkpoint_kind(read_torch_file(path, "checkpoint"))
+    if kind == "lightning":
+        return
+    hint = (
+        "give it as --model.net.weights FILE instead" if kind != "other" else "give RUN/checkpoints/last.ckpt"
+    )
+    raise UserError(f"--ckpt_path {path} is {KIND_NAMES[kind]}, not a Lightning checkpoint: {hint}")
+
+
+def check_inputs(command: str, cfg) -> None:
+    """Every input a run needs, checked before the trainer, wandb or the model start (one line each)."""
+    from aesplat.data.datamodule import find_shards
+    from aesplat.model.weights import read_torch_file
+    from aesplat.train.run_dir import run_artifacts
+
+    run_dir = Path(cfg.trainer.default_root_dir)
+    ckpt_path = cfg.get("ckpt_path")
+    if command == "fit":
+        find_shards(cfg.data.root, "train")
+        if cfg.trainer.get("limit_val_batches") != 0 and cfg.trainer.get("check_val_every_n_epoch") is not None:
+            find_shards(cfg.data.root, "test")  # validation runs on the test split
+        held = run_artifacts(run_dir) if launching_process() else []
+        if held and ckpt_path is None and not cfg.overwrite:
+            raise UserError(
+                f"{run_dir} already holds a run ({held[0].relative_to(run_dir)}): resume it with --ckpt_path "
+                "last, give a new --trainer.default_root_dir, or --overwrite to delete it and start afresh"
+            )
+    else:
+        find_shards(cfg.data.root, "test")
+    weights = cfg.model.net.get("weights") if cfg.model.get("net") else None
+    if weights:
+        read_torch_file(weights, "--model.net.weights")
+    writable_parent(run_dir, "--trainer.default_root_dir")
+    if command != "fit" and cfg.model.eval.get("output_dir"):
+        writable_parent(Path(cfg.model.eval.output_dir), "--model.eval.output_dir")
+
+
+def writable_parent(folder: Path, flag: str) -> None:
+    """``folder`` is (or can be made) a folder this process may write into."""
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{flag} {folder} is a file, not a folder")
+    probe = folder.resolve()
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise UserError(f"{flag} {folder}: cannot write in {probe} (no permission)")
+
+
+def clear_run_dir(run_dir: str | Path) -> None:
+    """``--overwrite``: delete the run directory (never the current folder, one holding it, or the home)."""
+    run_dir = Path(run_dir).resolve()
+    cwd = Path.cwd().resolve()
+    if run_dir in (cwd, *cwd.parents, Path.home().resolve()):
+        raise UserError(f"--overwrite will not delete {run_dir}: give a run directory of its own")
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+        print(f"aesplat fit: --overwrite: deleted {run_dir}", file=sys.stderr)
+
+
+def shared_evaluation_dir(base: str | Path, command: str) -> str:
+    """The evaluation folder of this command, the same in every DDP rank Lightning starts from this one."""
+    from aesplat.train.run_dir import evaluation_dir
+
+    env = "AESPLAT_EVALUATION_DIR"
+    if not launching_process() and os.environ.get(env):
+        return os.environ[env]
+    os.environ[env] = str(evaluation_dir(base, command))  # inherited by the ranks started later
+    return os.environ[env]
 
 
 def _local_processes(trainer) -> int:
@@ -172,13 +383,15 @@ def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None
         raise SystemExit(error)
     for pattern in _EXPECTED_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
-    cli_class, default_module, data_class = _lightning_cli()
+    cli_class, default_module, data_class, parser_class, save_config = _lightning_cli()
     module_class = module_class or default_module
     cli_class(
         module_class,
         data_class,
         args=None if list(argv) == sys.argv[1:] else list(argv),  # None: LightningCLI reads sys.argv itself
         parser_kwargs={"parser_mode": "omegaconf"},
+        parser_class=parser_class,
+        save_config_callback=save_config,
         save_config_kwargs={"overwrite": True},
         auto_configure_optimizers=False,
     )
@@ -206,16 +419,24 @@ def main(argv: Sequence[str] | None = None) -> None:
         print("aesplat predict --help                    images -> Gaussians, cameras, renders")
         print("aesplat bench --help                      accuracy-versus-time report\n")
         argv = ["--help"]
-    if argv and argv[0] == "predict":
-        from aesplat.predict import main as predict_main
+    command = (
+        argv[0] if argv and argv[0] in ("predict", "bench", "fit", "validate", "test") else "fit|validate|test"
+    )
+    try:
+        if command == "predict":
+            from aesplat.predict import main as predict_main
 
-        predict_main(argv[1:])
-    elif argv and argv[0] == "bench":
-        from aesplat.tradeoffs import main as bench_main
+            predict_main(argv[1:])
+        elif command == "bench":
+            from aesplat.tradeoffs import main as bench_main
 
-        bench_main(argv[1:])
-    else:
-        run_lightning(argv)
+            bench_main(argv[1:])
+        else:
+            run_lightning(argv)
+    except UserError as err:  # the user's to mend: one line; anything else is a bug and keeps its traceback
+        if debug():
+            raise
+        fail(command, str(err))
 
 
 if __name__ == "__main__":

@@ -11,8 +11,10 @@ writes
     DIR/depth/            predicted depth per input view: colour-mapped PNG and raw float32 .npy
     DIR/novel/            frames along a path through the predicted input cameras, and trajectory.gif
 
+DIR is written whole: into a hidden folder beside it, renamed into place once everything is written (a
+failure leaves DIR as it was). A non-empty DIR is refused unless ``--overwrite``, which replaces it as a whole.
 A checkpoint trained with ``model.cameras: dataset`` is refused: its camera head never trained, and images
-come without poses here.
+come without poses here. Every refusal is one line (see docs/troubleshooting.md).
 """
 
 from __future__ import annotations
@@ -20,16 +22,21 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
+import shutil
+import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 from torch import Tensor
 from tqdm import tqdm
 
+from .errors import MissingFileError, UserError, debug, fail
 from .export import VIEWER_MAX_SH_DEGREE, drop_transparent, write_ply
 from .geometry import (
     denormalize_intrinsics,
@@ -50,26 +57,58 @@ PATCH = 14  # the encoder's patch size: the model's image side must be a multipl
 # Images in, images out
 
 
-def load_image(path: str | Path, size: int) -> Tensor:
+MAX_UPSCALE = 2  # an image whose shorter side is under size / MAX_UPSCALE is refused, not blown up
+
+
+def load_image(path: str | Path, size: int, background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Tensor:
     """Read an image, resize its shorter side to ``size``, centre-crop a square -> [3, size, size] in [0, 1].
 
-    Raises ValueError naming the file when it cannot be read as an image.
+    The EXIF orientation is applied first (a photo is seen upright). 16-bit and float images keep their full
+    range (scaled, not clipped, to [0, 1]). Transparent pixels are composited over ``background`` (the colour
+    the model renders on). An image whose shorter side is under ``size / MAX_UPSCALE`` pixels is refused.
+    Raises UserError naming the file when it cannot be read as an image or is too small.
     """
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"input image {str(path)!r} does not exist (or is not a file)")
+        raise MissingFileError(f"input image {str(path)!r} does not exist (or is not a file)")
     try:
         with Image.open(path) as img:
-            img = img.convert("RGB")
-    except (UnidentifiedImageError, OSError) as err:
-        raise ValueError(f"cannot read {str(path)!r} as an image ({err}); give PNG/JPEG/... files") from err
-    w, h = img.size
+            img = ImageOps.exif_transpose(img)
+            array = _to_rgb_float(img, background)
+    except (UnidentifiedImageError, OSError, SyntaxError) as err:
+        raise UserError(f"cannot read {str(path)!r} as an image ({err}); give PNG/JPEG/... files") from None
+    h, w = array.shape[:2]
+    smallest = max(1, math.ceil(size / MAX_UPSCALE))
+    if min(w, h) < smallest:
+        raise UserError(
+            f"input image {str(path)!r} is {w}x{h} pixels: its shorter side must be at least {smallest} for "
+            f"this model's {size}-pixel input (images are upscaled by at most {MAX_UPSCALE}x)"
+        )
+    tensor = torch.from_numpy(array).permute(2, 0, 1)[None]  # [1, 3, H, W]
     scale = size / min(w, h)
     rw, rh = max(size, round(w * scale)), max(size, round(h * scale))
-    img = img.resize((rw, rh), Image.Resampling.LANCZOS)
+    tensor = torch.nn.functional.interpolate(tensor, size=(rh, rw), mode="bicubic", antialias=True,
+                                             align_corners=False)  # fmt: skip
     left, top = (rw - size) // 2, (rh - size) // 2
-    img = img.crop((left, top, left + size, top + size))
-    return torch.from_numpy(np.asarray(img).copy()).permute(2, 0, 1).float() / 255.0
+    return tensor[0, :, top : top + size, left : left + size].clamp(0, 1).contiguous()
+
+
+def _to_rgb_float(img: Image.Image, background: tuple[float, float, float]) -> np.ndarray:
+    """Any PIL image -> float32 [H, W, 3] in [0, 1]: 8-bit, 16-bit and float modes at their own range, alpha
+    (or a palette's transparency) composited over ``background``."""
+    if img.mode in ("I;16", "I;16B", "I;16L", "I;16N", "I"):
+        grey = np.asarray(img, dtype=np.float64)
+        peak = 65535.0 if img.mode.startswith("I;16") or grey.max() > 255 else 255.0  # PNG 16-bit opens as I
+        return np.repeat((grey / peak).clip(0, 1)[..., None], 3, axis=2).astype(np.float32)
+    if img.mode == "F":
+        return np.repeat(np.asarray(img, dtype=np.float32).clip(0, 1)[..., None], 3, axis=2)
+    if img.mode == "P" and "transparency" in img.info or img.mode in ("PA", "LA", "La", "RGBa"):
+        img = img.convert("RGBA")
+    if img.mode == "RGBA":
+        rgba = np.asarray(img, dtype=np.float32) / 255.0
+        alpha = rgba[..., 3:]
+        return rgba[..., :3] * alpha + np.asarray(background, dtype=np.float32) * (1.0 - alpha)
+    return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
 
 
 def save_image(image: Tensor, path: Path) -> None:
@@ -215,19 +254,20 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
     strictly.
     """
     from .model import NetConfig, checkpoint_cameras
+    from .model.weights import KIND_NAMES, checkpoint_kind, read_torch_file
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(
+        raise MissingFileError(
             f"checkpoint {str(path)!r} not found (aesplat fit writes RUN_DIR/checkpoints/last.ckpt)"
         )
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as err:  # torch.load fails on garbage with anything from KeyError to UnpicklingError
-        raise ValueError(f"{str(path)!r} is not a readable torch checkpoint ({err})") from err
+    ckpt = read_torch_file(path, "checkpoint")
     hparams = ckpt.get("hyper_parameters") or {} if isinstance(ckpt, dict) else {}
     if "net" not in hparams or "state_dict" not in ckpt:
-        raise ValueError(f"{str(path)!r} is not an aesplat checkpoint (no 'net' hyper-parameters / state_dict)")
+        raise UserError(
+            f"{str(path)!r} is {KIND_NAMES[checkpoint_kind(ckpt)]}, not an aesplat checkpoint (no 'net' "
+            "hyper-parameters); give RUN/checkpoints/last.ckpt of `aesplat fit` or an exported weights file"
+        )
     net = dict(hparams["net"])
     # The trained weights come from the checkpoint, not from the run's pretrained-weights file; a few
     # inference passes do not pay back a training run's block compilation.
@@ -374,10 +414,19 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=HelpFormatter,
     )
     parser.add_argument("images", nargs="+", metavar="IMAGE",
-                        help="images of one scene, any size: as many as the checkpoint's context views (2 for "
-                        "the paper's models)")  # fmt: skip
+                        help="images of one scene: as many as the checkpoint's context views (2 for the "
+                        "paper's models); any size down to half the model's input side; 16-bit images keep "
+                        "their range, transparent pixels are composited over the model's background colour, "
+                        "EXIF orientation is applied")  # fmt: skip
     parser.add_argument("--ckpt", required=True, help="checkpoint written by `aesplat fit` (last.ckpt / best)")
-    parser.add_argument("--out", required=True, help="output directory (created if missing)")
+    parser.add_argument("--out", required=True,
+                        help="output folder: created whole (written beside it, then renamed into place); an "
+                        "existing non-empty folder is refused unless --overwrite")  # fmt: skip
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace a non-empty --out folder as a whole (its old contents are removed)",
+    )
     parser.add_argument("--size", type=int, default=None,
                         help="square side the images are resized and centre-cropped to, a multiple of 14 "
                         "(default: the image size the checkpoint was trained at)")  # fmt: skip
@@ -401,53 +450,97 @@ def resolve_device(name: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit(f"aesplat predict: --device {name} asked for CUDA, which is not available here")
+        raise UserError(f"--device {name} asked for CUDA, which is not available here")
     return device
+
+
+def check_output_dir(out: Path, overwrite: bool) -> None:
+    """Refuse, before anything is loaded, an output folder that cannot be written whole: a file, a folder that
+    holds something (unless ``overwrite``), or a place without write permission."""
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file, not a folder; give a folder path")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise UserError(
+            f"--out {out} is not empty; give a new folder, or --overwrite to replace it (as a whole)"
+        )
+    parent = out.resolve().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"--out {out}: cannot write in {parent} (no permission)")
+
+
+@contextmanager
+def staged_output(out: Path, overwrite: bool):
+    """Yield a temporary folder beside ``out``; when the block ends without error, it becomes ``out`` (an old
+    ``out``, allowed by ``overwrite``, is removed as a whole); on error it is deleted and ``out`` untouched."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        yield staging
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    old = None
+    if out.exists():
+        if any(out.iterdir()) and not overwrite:  # something appeared there while we worked
+            shutil.rmtree(staging, ignore_errors=True)
+            raise UserError(f"--out {out} was filled by something else meanwhile; nothing was written")
+        old = out.parent / f".{out.name}.old-{staging.name.rsplit('-', 1)[-1]}"
+        os.replace(out, old)
+    os.replace(staging, out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``aesplat predict`` (see ``--help``)."""
     args = build_parser().parse_args(argv)
+    try:
+        return _predict(args)
+    except UserError as err:
+        if debug():
+            raise
+        fail("predict", str(err))
+
+
+def _predict(args: argparse.Namespace) -> int:
     apply_thread_policy(num_workers=0, override=args.threads)
     if len(args.images) < 2:
-        raise SystemExit("aesplat predict: give at least two images of the same scene")
+        raise UserError("give at least two images of the same scene")
+    if args.novel_frames < 2:
+        raise UserError("--novel-frames must be at least 2")
+    out_dir = Path(args.out)
+    check_output_dir(out_dir, args.overwrite)
     device = resolve_device(args.device)
-    try:
-        loaded = load_checkpoint(args.ckpt, device)
-    except (FileNotFoundError, ValueError) as err:
-        raise SystemExit(f"aesplat predict: {err}") from err
+    loaded = load_checkpoint(args.ckpt, device)
     if loaded.cameras != "predicted":
-        raise SystemExit(
-            f"aesplat predict: {args.ckpt} was trained with model.cameras={loaded.cameras}: it renders with "
+        raise UserError(
+            f"{args.ckpt} was trained with model.cameras={loaded.cameras}: it renders with "
             "the data set's cameras, its camera head never trained, and predict has no cameras for the input "
             "images. Evaluate it with `aesplat test` or `aesplat bench`, or predict with a checkpoint trained "
             "with model.cameras=predicted."
         )
     size = args.size or loaded.image_size
     if size % PATCH != 0:
-        raise SystemExit(f"aesplat predict: --size {size} is not a multiple of the patch size {PATCH}")
+        raise UserError(f"--size {size} is not a multiple of the patch size {PATCH}")
     model_degree = loaded.sh_degree
     if args.ply_sh_degree is not None and not 0 <= args.ply_sh_degree <= model_degree:
-        raise SystemExit(f"aesplat predict: --ply-sh-degree must be in 0..{model_degree} for this checkpoint")
-    if args.novel_frames < 2:
-        raise SystemExit("aesplat predict: --novel-frames must be at least 2")
-    try:
-        images = torch.stack([load_image(p, size) for p in args.images]).to(device)
-    except ValueError as err:
-        raise SystemExit(f"aesplat predict: {err}") from err
+        raise UserError(f"--ply-sh-degree must be in 0..{model_degree} for this checkpoint")
+    background = tuple(loaded.background.tolist())
+    images = torch.stack([load_image(p, size, background) for p in args.images]).to(device)
     names = [Path(p).stem for p in args.images]
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
     try:
         pred = predict_scene(loaded.model, images)
     except ValueError as err:  # e.g. more images than the context views the checkpoint was built for
-        raise SystemExit(f"aesplat predict: {err}") from err
+        raise UserError(str(err)) from None
     options = {**loaded.render.get("options", {}), "backend": args.backend,
                "background": loaded.background.to(device)}  # fmt: skip
-    write_outputs(
-        out_dir, names, images, pred, novel_frames=args.novel_frames, ply_sh_degree=args.ply_sh_degree,
-        min_opacity=args.min_opacity, render_options=options, progress=not args.no_progress,
-    )  # fmt: skip
+    with staged_output(out_dir, args.overwrite) as staging:
+        write_outputs(
+            staging, names, images, pred, novel_frames=args.novel_frames, ply_sh_degree=args.ply_sh_degree,
+            min_opacity=args.min_opacity, render_options=options, progress=not args.no_progress,
+        )  # fmt: skip
     print(f"aesplat predict: wrote {out_dir / 'gaussians.ply'} ({pred.gaussians.num_gaussians:,} Gaussians), "
           f"cameras.json, inputs/, renders/, depth/, novel/ under {out_dir}")  # fmt: skip
     return 0

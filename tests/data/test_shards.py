@@ -227,9 +227,16 @@ def test_command_line_scripts(tmp_path):
         with pytest.raises(SystemExit) as verdict:
             to_shards.main(["--verify", "--out", str(out)])
         assert verdict.value.code == code
+    # A folder without a manifest: one line, no traceback, nothing written.
+    with pytest.raises(SystemExit) as verdict:
+        to_shards.main(["--verify", "--out", str(tmp_path / "src")])
+    assert str(verdict.value) == (
+        f"to_shards.py: no manifest.json in {tmp_path / 'src'}: nothing to verify (convert first: to_shards.py "
+        f"--src SRC --out {tmp_path / 'src'})"
+    )
 
 
-def test_unreadable_chunk_is_counted(tmp_path, scene):
+def test_unreadable_chunk_is_counted_named_and_writes_no_shard(tmp_path, scene, capsys):
     s, r = scene
     images = (r.images * 255).round().to(torch.uint8).numpy()
     entry = chunk_entry(
@@ -244,6 +251,31 @@ def test_unreadable_chunk_is_counted(tmp_path, scene):
     )
     assert manifest["splits"]["train"]["skips"] == {"corrupt_chunk": 1}
     assert manifest["splits"]["train"]["samples"] == 8 and manifest["splits"]["test"]["samples"] == 1
+    err = capsys.readouterr().err
+    assert "to_shards: train/000001.torch: corrupt chunk, no shard written (cannot read chunk" in err
+    assert sorted(p.name for p in (tmp_path / "out" / "train").iterdir()) == [
+        "train-000000.json",
+        "train-000000.tar",
+    ]
+    assert [s["chunk"] for s in manifest["splits"]["train"]["shards"]] == ["000000.torch"]
+    assert verify_shards(tmp_path / "out") == []
+
+
+def test_skipped_scenes_are_named_on_stderr(tmp_path, scene, capsys):
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().expand(8, 3, 3).numpy()
+    fine = chunk_entry("fine", images, c2w, k)
+    broken = chunk_entry("nan_camera", images, c2w, k)
+    broken["cameras"][0, 0] = float("nan")
+    write_source(tmp_path / "src", [fine, broken], [fine], {"fine": {"context": [0, 4], "target": [1, 2, 3]}})
+    manifest = convert_dataset(
+        tmp_path / "src", tmp_path / "out", size=16, min_gap=2, max_gap=6, progress=False
+    )
+    assert manifest["splits"]["train"]["skips"] == {"bad_camera": 1}
+    err = capsys.readouterr().err
+    assert "to_shards: train/000000.torch: scene nan_camera skipped (bad_camera)" in err
+    assert "scene fine" not in err
 
 
 def test_missing_source_is_a_clear_error(tmp_path):

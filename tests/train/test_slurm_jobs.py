@@ -205,7 +205,7 @@ def test_preempted_job_is_requeued_and_ends_as_if_uninterrupted(uninterrupted, p
 
 def test_eval_job_writes_per_scene_csv_and_summary(job_env, smoke_shards, uninterrupted, tmp_path):
     _, run_dir, _ = uninterrupted
-    log, out, ckpt = tmp_path / "eval.out", run_dir / "test", run_dir / "checkpoints" / "last.ckpt"
+    log, out, ckpt = tmp_path / "eval.out", run_dir / "test-latest", run_dir / "checkpoints" / "last.ckpt"
     args = ["-c", "conf/smoke.yaml", "--data.root", str(smoke_shards), "--ckpt_path", str(ckpt),
             "--trainer.default_root_dir", str(run_dir), "--trainer.logger", "false",
             "--trainer.enable_progress_bar", "false"]  # fmt: skip

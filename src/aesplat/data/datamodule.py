@@ -19,6 +19,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
+from ..errors import MissingFileError
 from .curriculum import GapCurriculum
 from .stream import EvalStream, StreamConfig, TrainStream, counter_totals, new_counters
 
@@ -140,27 +141,10 @@ class DataModule(L.LightningDataModule):
     # ------------------------------------------------------------------------------------------- loaders
 
     def shards(self, split: str) -> list[str]:
-        """Sorted shard paths of ``root/<split>``: those the manifest lists if there is one (stale tars from
-        an older conversion are ignored), else every ``*.tar``. A clear error if there are none."""
-        folder = self.root / split
-        path = self.root / "manifest.json"
-        manifest = json.loads(path.read_text()) if path.exists() else {}
-        listed = manifest.get("splits", {}).get(split)
-        if listed is not None:
-            wanted = [folder / s["shard"] for s in listed["shards"]]
-            found = sorted(str(p) for p in wanted if p.exists())
-            if len(found) < len(wanted):
-                log.warning(
-                    "%d shards listed in %s are missing from %s", len(wanted) - len(found), path, folder
-                )
-        else:
-            found = sorted(str(p) for p in folder.glob("*.tar"))
-        if not found:
-            raise FileNotFoundError(
-                f"no shards in {folder}: create them with `python data_prep/to_shards.py --src SRC --out "
-                f"{self.root}` (or `python data_prep/synthetic.py --out SRC` first for the synthetic set)"
-            )
-        size = manifest.get("config", {}).get("size")
+        """Sorted shard paths of ``root/<split>`` (see :func:`find_shards`)."""
+        found = find_shards(self.root, split)
+        manifest = self.root / "manifest.json"
+        size = json.loads(manifest.read_text()).get("config", {}).get("size") if manifest.exists() else None
         if size is not None and size != self.image_size:
             log.info("shards are %dpx, resizing to image_size=%d while loading", size, self.image_size)
         return found
@@ -230,3 +214,31 @@ class _EpochStartLoader(DataLoader):
     def __iter__(self):
         self.on_epoch_start()
         return super().__iter__()
+
+
+def find_shards(root: str | Path, split: str) -> list[str]:
+    """Sorted shard paths of ``root/<split>``: those the manifest lists if there is one (stale tars from an
+    older conversion are ignored), else every ``*.tar``. A one-line error naming the fix if there are none."""
+    root = Path(root)
+    if not root.is_dir():
+        raise MissingFileError(
+            f"data root {root} does not exist: give --data.root the shard folder that "
+            "`python data_prep/to_shards.py` wrote"
+        )
+    folder = root / split
+    path = root / "manifest.json"
+    manifest = json.loads(path.read_text()) if path.exists() else {}
+    listed = manifest.get("splits", {}).get(split)
+    if listed is not None:
+        wanted = [folder / s["shard"] for s in listed["shards"]]
+        found = sorted(str(p) for p in wanted if p.exists())
+        if len(found) < len(wanted):
+            log.warning("%d shards listed in %s are missing from %s", len(wanted) - len(found), path, folder)
+    else:
+        found = sorted(str(p) for p in folder.glob("*.tar"))
+    if not found:
+        raise MissingFileError(
+            f"no shards in {folder}: create them with `python data_prep/to_shards.py --src SRC --out "
+            f"{root}` (or `python data_prep/synthetic.py --out SRC` first for the synthetic set)"
+        )
+    return found

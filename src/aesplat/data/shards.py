@@ -2,7 +2,9 @@
 
 One source chunk becomes one tar shard per split, written to a temporary name and renamed when complete, with
 a sidecar ``*.json`` (counts, skips, SHA-256). A rerun skips every shard whose sidecar matches its tar, so an
-interrupted conversion resumes. ``manifest.json`` gathers the sidecars.
+interrupted conversion resumes. ``manifest.json`` gathers the sidecars. A chunk that yields no sample (corrupt,
+or every scene skipped) writes no shard; corrupt chunks and skipped scenes are named on stderr as well as
+counted in the manifest.
 
 Sample layout (V = context views first, then targets)::
 
@@ -24,6 +26,7 @@ import json
 import math
 import os
 import re
+import sys
 import tarfile
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
@@ -34,6 +37,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from ..errors import MissingFileError
 from .chunks import jpeg_bytes, list_chunks, load_chunk, row_to_cameras
 
 MANIFEST_VERSION = 1
@@ -279,10 +283,12 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
     samples: list[tuple[str, dict[str, bytes]]] = []
     scenes_seen = 0
     used_keys: list[str] = []
+    skipped: list[tuple[str, str]] = []  # (scene key, reason); a corrupt chunk: ("", the error)
     try:
         chunk = load_chunk(job.chunk)
-    except ValueError:
+    except ValueError as err:
         chunk, skips["corrupt_chunk"] = [], 1
+        skipped.append(("", str(err).splitlines()[0]))
     for scene in chunk:
         scenes_seen += 1
         reason = validate_scene(scene, job.cfg) if isinstance(scene, dict) else "missing_field"
@@ -297,36 +303,56 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
                 reason = "evaluation_frames_out_of_range"
         if reason is not None:
             skips[reason] += 1
+            skipped.append((key or f"#{scenes_seen - 1}", reason))
             continue
         try:
             made = [(name, make_sample(scene, ctx, tgt, ov, job.cfg, highlights=job.split == "test"))
                     for name, ctx, tgt, ov in _scene_samples(scene, key, job, skips)]  # fmt: skip
         except Exception:  # noqa: BLE001 - a broken frame skips its scene, never the run
             skips["corrupt_image"] += 1
+            skipped.append((key, "corrupt_image"))
             continue
         samples.extend(made)
         used_keys.append(key)
     highlight, masked = _highlight_pixels(samples)
-    tmp = shard.with_suffix(".tar.tmp")
-    write_tar(tmp, samples)
-    os.replace(tmp, shard)
     record = {
-        "shard": shard.name,
+        "shard": shard.name if samples else None,  # no sample, no shard (and no sidecar: a rerun retries it)
         "chunk": Path(job.chunk).name,
         "samples": len(samples),
         "scenes": len(used_keys),
         "scenes_seen": scenes_seen,
         "scene_keys": used_keys,
         "skips": dict(sorted((k, v) for k, v in skips.items() if v)),
-        "sha256": sha256(shard),
-        "bytes": shard.stat().st_size,
+        "skipped_scenes": [list(item) for item in skipped],
+        "sha256": None,
+        "bytes": 0,
         "highlight_pixels": highlight,
         "masked_target_pixels": masked,
         "config": asdict(job.cfg),
         "evaluation_index_sha256": _index_digest(job.eval_index),
     }
+    if not samples:
+        shard.unlink(missing_ok=True)  # a shard of an earlier conversion of this chunk is stale now
+        shard.with_suffix(".json").unlink(missing_ok=True)
+        return record
+    tmp = shard.with_suffix(".tar.tmp")
+    write_tar(tmp, samples)
+    os.replace(tmp, shard)
+    record.update(sha256=sha256(shard), bytes=shard.stat().st_size)
     shard.with_suffix(".json").write_text(json.dumps(record, indent=1))
     return record
+
+
+def report_skips(split: str, record: dict[str, Any]) -> None:
+    """Name on stderr what a chunk's conversion left out: the chunk itself if corrupt, else each scene."""
+    for key, reason in record.get("skipped_scenes", []):
+        if key:
+            print(f"to_shards: {split}/{record['chunk']}: scene {key} skipped ({reason})", file=sys.stderr)
+        else:
+            print(f"to_shards: {split}/{record['chunk']}: corrupt chunk, no shard written ({reason})",
+                  file=sys.stderr)  # fmt: skip
+    if not record.get("skipped_scenes") and not record["samples"]:
+        print(f"to_shards: {split}/{record['chunk']}: no sample, no shard written", file=sys.stderr)
 
 
 def _highlight_pixels(samples: list[tuple[str, dict[str, bytes]]]) -> tuple[int, int]:
@@ -394,7 +420,7 @@ def convert_dataset(
     src, out = Path(src), Path(out)
     splits = [s for s in ("train", "test") if (src / s).is_dir()]
     if not splits:
-        raise FileNotFoundError(f"{src} holds no train/ or test/ folder of *.torch chunks (pixelSplat layout)")
+        raise MissingFileError(f"{src} holds no train/ or test/ folder of *.torch chunks (pixelSplat layout)")
     info = json.loads((src / "dataset.json").read_text()) if (src / "dataset.json").exists() else {}
     gaps = info.get("gap_range", [25, 90])
     base = ConvertConfig(
@@ -440,10 +466,12 @@ def convert_dataset(
             with ProcessPoolExecutor(max_workers=workers) as pool:
                 for (split, _), record in zip(jobs, pool.map(convert_chunk, [j for _, j in jobs])):
                     records.append((split, record))
+                    report_skips(split, record)
                     bar.update()
         else:
             for split, job in jobs:
                 records.append((split, convert_chunk(job)))
+                report_skips(split, records[-1][1])
                 bar.update()
 
     manifest: dict[str, Any] = {
@@ -454,7 +482,7 @@ def convert_dataset(
         "splits": {},
     }
     for split in splits:
-        recs = sorted((r for s, r in records if s == split), key=lambda r: r["shard"])
+        recs = sorted((r for s, r in records if s == split), key=lambda r: r["chunk"])
         skips: Counter[str] = Counter()
         for r in recs:
             skips.update(r["skips"])
@@ -464,7 +492,9 @@ def convert_dataset(
             "scenes_seen": sum(r["scenes_seen"] for r in recs),
             "skips": dict(sorted(skips.items())),
             "shards": [
-                {k: r[k] for k in ("shard", "chunk", "samples", "scenes", "sha256", "bytes")} for r in recs
+                {k: r[k] for k in ("shard", "chunk", "samples", "scenes", "sha256", "bytes")}
+                for r in recs
+                if r["shard"] is not None
             ],
         }
         masked = sum(r.get("masked_target_pixels", 0) for r in recs)
@@ -483,6 +513,10 @@ def convert_dataset(
 def verify_shards(out: str | Path) -> list[str]:
     """Shards whose SHA-256 no longer matches the manifest (or that are missing), as relative paths."""
     out = Path(out)
+    if not (out / "manifest.json").is_file():
+        raise MissingFileError(
+            f"no manifest.json in {out}: nothing to verify (convert first: to_shards.py --src SRC --out {out})"
+        )
     manifest = json.loads((out / "manifest.json").read_text())
     bad = []
     for split, entry in manifest["splits"].items():

@@ -8,14 +8,17 @@ Unknown and missing keys are never silently ignored: each loader returns a :clas
 from __future__ import annotations
 
 import math
+import pickle
 import re
 import warnings
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from torch import Tensor, nn
 
+from ..errors import MissingFileError, UserError
 from .encoder import PatchEncoder, resize_position_grid
 from .transformer import GeometryTransformer
 
@@ -46,7 +49,7 @@ def _unwrap(obj: object) -> dict[str, Tensor]:
         else:
             break
     if not isinstance(obj, dict) or not obj:
-        raise ValueError("the checkpoint holds no state dict (expected a dict of tensors)")
+        raise UserError("the checkpoint holds no state dict (expected a dict of tensors)")
     return {k: v for k, v in obj.items() if isinstance(v, Tensor)}
 
 
@@ -80,18 +83,82 @@ def _resize_pos_embed(pos: Tensor, grid: int) -> Tensor:
     return torch.cat([pos[:, :1], resize_position_grid(pos[:, 1:], (grid, grid))], dim=1)
 
 
+def read_torch_file(path: str | Path, what: str) -> object:
+    """Load a torch file safely (tensors and plain containers only, never arbitrary pickled objects).
+
+    Raises :class:`MissingFileError` / :class:`UserError` naming the file (``what``: "checkpoint", "pretrained
+    weights", ...) and what is wrong with it: missing, empty, truncated, not a torch file, or holding Python
+    objects that could only be loaded by running code from the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MissingFileError(f"{what} file {path} does not exist (or is not a file)")
+    if path.stat().st_size == 0:
+        raise UserError(f"{what} file {path} is empty")
+    zipped = zipfile.is_zipfile(path)
+    try:  # a zip (the format of torch.save) is memory-mapped: a multi-GB file is not read in full
+        return torch.load(path, map_location="cpu", weights_only=True, mmap=zipped)
+    except Exception as err:  # noqa: BLE001 - torch fails on a damaged file with anything from KeyError on
+        if isinstance(err, pickle.UnpicklingError) and "global" in str(err):  # a class the safe loader refuses
+            raise UserError(
+                f"{what} file {path} holds Python objects besides tensors; it is not loaded, since that could "
+                "run code from the file: give a checkpoint written by `aesplat fit`, scripts/export_weights.py "
+                "or a plain state dict"
+            ) from None
+        zip_like = zipped or _starts_like_zip(path)
+        damage = "truncated or corrupt (a damaged zip archive)" if zip_like else "not a torch file"
+        raise UserError(f"{what} file {path} is {damage}; copy it again or give another file") from None
+
+
+def _starts_like_zip(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(4) == b"PK\x03\x04"
+
+
+def checkpoint_kind(obj: object) -> str:
+    """What a loaded torch file is: ``"lightning"`` (an ``aesplat fit`` checkpoint, resumable), ``"exported"``
+    (model tensors and hyper-parameters from scripts/export_weights.py), ``"weights"`` (a state dict: DINOv2,
+    VGGT, ...), or ``"other"``."""
+    if not isinstance(obj, dict):
+        return "other"
+    if "pytorch-lightning_version" in obj and "state_dict" in obj:
+        return "lightning"
+    if "state_dict" in obj and "hyper_parameters" in obj:
+        return "exported"
+    try:
+        _unwrap(obj)
+    except ValueError:
+        return "other"
+    return "weights"
+
+
+KIND_NAMES = {
+    "lightning": "a Lightning checkpoint of `aesplat fit`",
+    "exported": "an exported weights file (scripts/export_weights.py)",
+    "weights": "a weights file (a state dict, e.g. DINOv2 or VGGT)",
+    "other": "not a checkpoint (no state dict of tensors)",
+}
+
+
 def _read_raw(path: str | Path, what: str) -> object:
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(
+        raise MissingFileError(
             f"{what} weights file {path} does not exist; give the path of a local checkpoint "
             "(.pth/.pt/.bin/.ckpt), or leave it unset for random initialisation"
         )
-    return torch.load(path, map_location="cpu", weights_only=True)
+    return read_torch_file(path, f"{what} weights")
 
 
 def _read(path: str | Path, what: str) -> dict[str, Tensor]:
-    return _unwrap(_read_raw(path, what))
+    return _state_of(_read_raw(path, what), path)
+
+
+def _state_of(raw: object, path: str | Path) -> dict[str, Tensor]:
+    try:
+        return _unwrap(raw)
+    except UserError as err:
+        raise UserError(f"{path}: {err}") from None
 
 
 def _load_matching(
@@ -108,7 +175,7 @@ def _load_matching(
         if key == "pos_embed" and pos_grid is not None:
             value = _resize_pos_embed(value, pos_grid)
         if value.shape != own[key].shape:
-            raise ValueError(
+            raise UserError(
                 f"{report.path}: '{key}' has shape {tuple(value.shape)} but the model expects "
                 f"{tuple(own[key].shape)} for {prefix}{key}; pick the model size (and register-token "
                 "counts) that match the checkpoint"
@@ -215,7 +282,7 @@ def _load_aesplat_state(
     except ValueError as err:
         keys = ("size", "appearance", "sh_degree", "options")
         settings = {k: trained_with.get(k) for k in keys} if trained_with else {}
-        raise ValueError(f"{err}. The checkpoint was trained with model.net {settings}") from None
+        raise UserError(f"{err}. The checkpoint was trained with model.net {settings}") from None
     _warn(report)
     return report
 
@@ -224,7 +291,7 @@ def load_weights(model: nn.Module, path: str | Path) -> WeightsReport:
     """What ``build_model(weights=...)`` calls: an AESplat training checkpoint into the whole ``model``, else
     (``load_pretrained_weights``) a VGGT or DINOv2 checkpoint into its encoder and geometry transformer."""
     raw = _read_raw(path, "pretrained")  # read once: VGGT checkpoints are several GB
-    state = _unwrap(raw)
+    state = _state_of(raw, path)
     if is_aesplat_checkpoint(state):
         hparams = raw.get("hyper_parameters") if isinstance(raw, dict) else None
         return _load_aesplat_state(model, state, path, (hparams or {}).get("net"))
@@ -237,7 +304,7 @@ def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> P
     ``model.net.weights`` loads like the checkpoint itself (about a third of its size). ``note`` is kept
     beside them (e.g. the command that made it)."""
     raw = _read_raw(checkpoint, "training")
-    state = _unwrap(raw)
+    state = _state_of(raw, checkpoint)
     if not is_aesplat_checkpoint(state):
         raise ValueError(
             f"{checkpoint} is not an `aesplat fit` checkpoint (no {AESPLAT_PREFIX}camera_head.* keys)"

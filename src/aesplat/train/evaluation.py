@@ -30,7 +30,7 @@ CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", *METRICS)
 class EvalConfig:
     """Where `aesplat test` writes and what it logs (config section ``model.eval``)."""
 
-    output_dir: str | None = None  # default: <trainer.default_root_dir>/test
+    output_dir: str | None = None  # `aesplat test` writes into a new <this or the run dir>/test-<UTC time>/
     num_sample_renders: int = 8  # scenes whose render grid is saved as PNG
     log_images_every_n_steps: int = 500  # training image grids sent to the logger
     metrics_lpips: bool = True  # compute the LPIPS metric when its weights are present

@@ -1,6 +1,8 @@
 """Run directories: one folder per run holds its checkpoints, wandb files, config and evaluation outputs.
 
-The wandb run id is stored in the folder, so a resumed or requeued run continues the same wandb run.
+The wandb run id is stored in the folder, so a resumed or requeued run continues the same wandb run. Each
+``aesplat test`` / ``validate`` writes into a folder of its own inside it (``test-<UTC time>/``, the newest
+behind the link ``test-latest``), so an evaluation never changes the training run's files.
 """
 
 from __future__ import annotations
@@ -8,6 +10,7 @@ from __future__ import annotations
 import os
 import socket
 import uuid
+from datetime import datetime, timezone
 from pathlib import Path
 
 WANDB_ID_FILE = "wandb_run_id"
@@ -53,3 +56,34 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
     run_dir = Path(run_dir)
     candidates = [*run_dir.glob("checkpoints/last*.ckpt"), *run_dir.glob("hpc_ckpt_*.ckpt")]
     return max(candidates, key=lambda p: p.stat().st_mtime) if candidates else None
+
+
+def run_artifacts(run_dir: str | Path) -> list[Path]:
+    """What marks ``run_dir`` as holding a run (finished or interrupted): its config, wandb id, checkpoints."""
+    run_dir = Path(run_dir)
+    found = [run_dir / name for name in ("config.yaml", WANDB_ID_FILE) if (run_dir / name).exists()]
+    return found + sorted(run_dir.glob("checkpoints/*.ckpt")) + sorted(run_dir.glob("hpc_ckpt_*.ckpt"))
+
+
+def evaluation_dir(base: str | Path, command: str, now: datetime | None = None) -> Path:
+    """A new folder for one ``aesplat test`` / ``validate``: ``base/<command>-<UTC time>`` (``-2``, ``-3``...
+    when that name is taken). Under SLURM the job id replaces the time, so every task of the job agrees."""
+    base = Path(base)
+    job = os.environ.get("SLURM_JOB_ID")
+    stamp = f"job{job}" if job else (now or datetime.now(timezone.utc)).strftime("%Y%m%d-%H%M%S")
+    folder, n = base / f"{command}-{stamp}", 1
+    while folder.exists() and not job:
+        n += 1
+        folder = base / f"{command}-{stamp}-{n}"
+    return folder
+
+
+def point_latest(folder: str | Path) -> Path:
+    """Make ``<parent>/<command>-latest`` a relative link to ``folder`` (replaced atomically); returns it."""
+    folder = Path(folder)
+    link = folder.parent / f"{folder.name.split('-', 1)[0]}-latest"
+    tmp = folder.parent / f".{link.name}.{os.getpid()}"
+    tmp.unlink(missing_ok=True)
+    tmp.symlink_to(folder.name, target_is_directory=True)
+    os.replace(tmp, link)
+    return link
