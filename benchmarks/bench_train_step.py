@@ -7,29 +7,35 @@
         --steps 200 --losses eager.csv                                                 # record a loss curve
     python benchmarks/bench_train_step.py -c conf/re10k.yaml --device cuda --steps 200 --compare eager.csv
 
-Builds the module, optimizer and DataModule from the config's ``model`` / ``data`` sections
-(``trainer.precision`` bf16-mixed -> bf16 autocast on CUDA), writes a few synthetic scenes as shards at the
-config's image size (the curriculum is widened to the gaps they hold), and runs the same step as
-``AESplatModule.training_step``: forward (model + render with the predicted target cameras), loss, backward,
-gradient clipping, AdamW, schedule.
-Lightning's own loop (logging, callbacks) is not included. Prints the seconds per step (median after
-``--warmup`` steps), samples/s, peak memory and the median time of each stage:
+Builds the module and DataModule from the config's ``model`` / ``data`` sections, writes a few synthetic
+scenes as shards at the config's image size (the curriculum is widened to the gaps they hold), and runs
+``warmup + steps`` steps of a Lightning fit of that module (``trainer.precision`` as configured on CUDA,
+32-true on the CPU; no logger, checkpoints, validation or progress bar; ``trainer.log_every_n_steps`` as
+configured, since the steps that log read values back to the host). So it times the product's own training
+step, ``AESplatModule.training_step`` as ``aesplat fit`` runs it: forward (model + render with the predicted
+target cameras, the context views too when the loss wants them), loss, backward, clipping and the device-side
+finiteness check, AdamW, schedule, the skip guard. ``benchmarks/gpu_throughput.sh fit`` times ``aesplat fit``
+itself. Prints the seconds per step (median after ``--warmup`` steps; one step = from the end of the previous
+step to the end of this one), samples/s, peak memory and the median time of each stage:
 
-    data wait        blocking on the DataLoader (workers run ahead, so this is what they fail to hide)
-    host to device   moving the batch, uint8 -> float images
+    data wait + loop  between steps: the DataLoader (workers run ahead, so this is what they fail to hide),
+                      Lightning's loop, callbacks and logging
+    host to device    moving the batch, uint8 -> float images
     encoder, transformer, heads (camera, depth, Gaussian), appearance, model (other: unprojection, glue)
-    render           the rasterizer (forward minus the model)
-    loss             photometric loss and the logged training PSNR
-    backward         autograd through everything
-    optimizer        gradient clipping + finiteness check, AdamW step, schedule, zero_grad
+    render            the rasterizer (the module's forward minus the model)
+    loss              the photometric loss (and the pose loss of the posed warm start)
+    backward          autograd through everything
+    optimizer         clipping + finiteness check, AdamW step, schedule, skip guard; on logging steps the
+                      training PSNR and the one read-back of the logged values
 
-Stages are timed with forward hooks; on CUDA every boundary synchronises, which costs a little overlap.
+Stages are timed with forward hooks and Lightning's hooks; on CUDA every boundary synchronises, which costs a
+little overlap (the step times are those of a run that waits at every boundary).
 
 ``--set KEY=VALUE`` changes one setting of the layered config (dotted path, YAML value), e.g.
 ``--set model.net.compile=none``, ``--set model.optim.impl=foreach``,
 ``--set model.net.options.head_precision=bf16``.
 ``--seed`` fixes the initial weights and the order of the data, so two runs that differ only in a speed
-setting see the same batches: ``--losses FILE`` writes every step's loss (warm-up included) as CSV and
+setting see the same batches: ``--losses FILE`` writes every step's loss and time (warm-up included) as CSV and
 ``--compare FILE`` prints how far this run's losses are from such a file, step by step and as means over
 windows of ``--window`` steps (bf16 and atomics make single steps differ a little; the windowed means show a
 drift).
@@ -47,21 +53,20 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
-from contextlib import nullcontext
 from pathlib import Path
 
+import lightning as L
 import torch
 import yaml
+from lightning.pytorch import Callback
 
 from aesplat.data import DataModule, convert_dataset, generate_dataset
 from aesplat.threads import apply_thread_policy
 from aesplat.train import AESplatModule
 from aesplat.train.loss import LpipsWeightsMissing
-from aesplat.train.metrics import psnr
-from aesplat.train.optim import build_optimizer, clip_and_check, discard_gradients
 
-STAGES = ("data wait", "host to device", "encoder", "transformer", "heads", "appearance", "model (other)",
-          "render", "loss", "backward", "optimizer")  # fmt: skip
+STAGES = ("data wait + loop", "host to device", "encoder", "transformer", "heads", "appearance",
+          "model (other)", "render", "loss", "backward", "optimizer")  # fmt: skip
 MODEL_PARTS = {
     "encoder": ("encoder",),
     "transformer": ("transformer",),
@@ -92,6 +97,88 @@ class StageClock:
     def hook(self, module: torch.nn.Module, stage: str) -> None:
         module.register_forward_pre_hook(lambda *_: self.start(stage))
         module.register_forward_hook(lambda *_: self.stop(stage))
+
+
+class StepTimer(Callback):
+    """Times every training step of a fit stage by stage, and keeps its loss (read once, at the end).
+
+    The stage boundaries inside the step are Lightning's own hooks (batch transfer, the module's forward,
+    ``on_before_backward``, ``on_after_backward``, the return of ``training_step``), so the step itself is the
+    module's, untouched; one step runs from the end of the previous one to the end of this one.
+    """
+
+    def __init__(self, device: torch.device) -> None:
+        self.clock = StageClock(device)
+        self.stages: list[dict[str, float]] = []  # per step, seconds per stage
+        self.seconds: list[float] = []  # per step
+        self.losses: list[torch.Tensor] = []
+        self._mark = 0.0
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        clock, model = self.clock, pl_module.model
+        for part, names in MODEL_PARTS.items():
+            for name in names:
+                clock.hook(getattr(model, name), part)
+        clock.hook(model, "model")
+        clock.hook(pl_module, "forward")
+        for name, before, after in (("transfer_batch_to_device", "data wait + loop", "host to device"),
+                                    ("on_after_batch_transfer", None, "host to device"),
+                                    ("training_step", None, "optimizer")):  # fmt: skip
+            setattr(pl_module, name, self._timed(getattr(pl_module, name), before, after))
+
+    def _timed(self, method, before: str | None, after: str):
+        """``method`` with the time up to its call charged to ``before`` and its own time to ``after``."""
+
+        def timed(*args, **kwargs):
+            if before is not None and pl_trainer_training(method):
+                self._lap(before)
+            out = method(*args, **kwargs)
+            if pl_trainer_training(method):
+                self._lap(after)
+            return out
+
+        return timed
+
+    def _lap(self, stage: str) -> None:
+        """Charge the time since the last mark to ``stage`` (the stages of the model are charged by hooks)."""
+        now = self.clock.now()
+        self.clock.step[stage] += now - self._mark
+        self._mark = now
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self._mark = self._step_start = self.clock.now()
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx: int) -> None:
+        self.clock.step["data wait + loop"] += self.clock.now() - self._mark  # the loop's own hooks
+        self._mark = self.clock.now()
+
+    def on_before_backward(self, trainer, pl_module, loss) -> None:
+        s = self.clock.step
+        now = self.clock.now()
+        forward = s.pop("forward", 0.0)
+        parts = sum(s.get(k, 0.0) for k in MODEL_PARTS)
+        s["model (other)"] = s.pop("model", 0.0) - parts
+        s["render"] = forward - s["model (other)"] - parts
+        s["loss"] = now - self._mark - forward
+        self._mark = now
+
+    def on_after_backward(self, trainer, pl_module) -> None:
+        self._lap("backward")
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx: int) -> None:
+        self._lap("optimizer")  # anything after training_step returned, before this hook
+        loss = outputs["loss"] if isinstance(outputs, dict) else outputs
+        self.losses.append(loss.detach())
+        self.stages.append(dict(self.clock.step))
+        self.seconds.append(self._mark - self._step_start)
+        self._step_start = self._mark
+        self.clock.step = defaultdict(float)
+
+
+def pl_trainer_training(method) -> bool:
+    """Whether the bound method's module is training (validation and the anomaly re-run are not timed)."""
+    module = getattr(method, "__self__", None)
+    return module is None or module.training
 
 
 def load_config(paths: list[str]) -> dict:
@@ -155,7 +242,7 @@ def synthetic_shards(root: Path, size: int, scenes: int) -> tuple[Path, list[int
     return root / "shards", list(info["gap_range"])
 
 
-def build(cfg: dict, args: argparse.Namespace, shards: Path, gaps: list[int], device: torch.device):
+def build(cfg: dict, args: argparse.Namespace, shards: Path, gaps: list[int]):
     model_cfg = dict(cfg.get("model", {}))
     loss = dict(model_cfg.get("loss") or {})
     try:
@@ -166,7 +253,6 @@ def build(cfg: dict, args: argparse.Namespace, shards: Path, gaps: list[int], de
         module = AESplatModule(net=model_cfg.get("net"), loss={**loss, "lpips_weight": 0.0},
                                optim=model_cfg.get("optim"), render=model_cfg.get("render"),
                                eval={"metrics_lpips": False})  # fmt: skip
-    module.to(device).train()
     data_cfg = {k: v for k, v in (cfg.get("data") or {}).items() if k not in ("root",)}
     data_cfg.update(root=str(shards), gap_initial=gaps, gap_final=gaps, gap_warmup_steps=1,
                     train_batches_per_epoch=args.warmup + args.steps)  # fmt: skip
@@ -177,77 +263,36 @@ def build(cfg: dict, args: argparse.Namespace, shards: Path, gaps: list[int], de
     if args.num_workers is not None:
         data_cfg["num_workers"] = args.num_workers
     data_cfg["seed"] = args.seed
-    datamodule = DataModule(**data_cfg)
-    pretrained = bool(getattr(module.model, "pretrained_backbone", False))
-    total = max(args.warmup + args.steps, module.optim_cfg.warmup_steps + 1)
-    groups = module.model.named_parameter_groups()
-    optimizer, scheduler = build_optimizer(groups, module.optim_cfg, pretrained, total_steps=total)
-    return module, datamodule, optimizer, scheduler
+    return module, DataModule(**data_cfg)
 
 
-def run(module: AESplatModule, datamodule: DataModule, optimizer, scheduler, device: torch.device,
-        steps: int, warmup: int, autocast) -> tuple[list[dict], list[float], list[dict]]:  # fmt: skip
-    """Time ``warmup + steps`` training steps.
+def run(module: AESplatModule, datamodule: DataModule, device: torch.device, steps: int, warmup: int,
+        precision: str, trainer_cfg: dict) -> tuple[list[dict], list[float], list[dict]]:  # fmt: skip
+    """Fit ``warmup + steps`` steps and time them.
 
     Returns per-step stage times and step times (after warm-up), and one record per step (warm-up included)
     with its loss and seconds.
     """
-    clock = StageClock(device)
-    model = module.model
-    for stage, names in MODEL_PARTS.items():
-        for name in names:
-            clock.hook(getattr(model, name), stage)
-    clock.hook(model, "model")
-    loader = iter(datamodule.train_dataloader())
-    per_step, step_times, losses, records = [], [], [], []
-    for i in range(warmup + steps):
-        clock.step = defaultdict(float)
-        t0 = clock.now()
-        clock.start("data wait")
-        batch = next(loader)
-        clock.stop("data wait")
-        clock.start("host to device")
-        batch = module.on_after_batch_transfer(module.transfer_batch_to_device(batch, device, 0), 0)
-        clock.stop("host to device")
-        clock.start("forward")
-        with autocast():
-            _, rendered = module(batch)
-        clock.stop("forward")
-        clock.start("loss")
-        terms = module.loss_fn(rendered.color, batch.target.images)
-        with torch.no_grad():
-            psnr(rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1)).mean()
-        clock.stop("loss")
-        clock.start("backward")
-        optimizer.zero_grad(set_to_none=True)
-        terms["total"].backward()
-        clock.stop("backward")
-        clock.start("optimizer")
-        _, finite = clip_and_check(model.parameters(), module.optim_cfg.grad_clip, terms["total"])
-        if not finite:
-            discard_gradients(optimizer)
-        optimizer.step()
-        scheduler.step()
-        clock.stop("optimizer")
-        took = clock.now() - t0
-        losses.append(terms["total"].detach())
-        records.append({"step": i, "warmup": int(i < warmup), "seconds": took, "skipped": int(not finite)})
-        if i >= warmup:
-            s = dict(clock.step)
-            parts = sum(s.get(k, 0.0) for k in MODEL_PARTS)
-            s["model (other)"] = s.pop("model") - parts
-            s["render"] = s.pop("forward") - s["model (other)"] - parts
-            per_step.append(s)
-            step_times.append(took)
-    for record, loss in zip(records, torch.stack(losses).float().tolist()):  # one device sync, at the end
-        record["loss"] = loss
-    return per_step, step_times, records
+    timer = StepTimer(device)
+    log_every = trainer_cfg.get("log_every_n_steps", 50)
+    trainer = L.Trainer(
+        accelerator=device.type, devices=[device.index or 0] if device.type == "cuda" else 1,
+        precision=precision, max_steps=warmup + steps, log_every_n_steps=log_every,
+        benchmark=trainer_cfg.get("benchmark"), logger=False, callbacks=[timer], enable_checkpointing=False,
+        enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0,
+    )  # fmt: skip
+    trainer.fit(module, datamodule)
+    records = [
+        {"step": i, "warmup": int(i < warmup), "seconds": took, "loss": loss}
+        for i, (took, loss) in enumerate(zip(timer.seconds, torch.stack(timer.losses).float().tolist()))
+    ]  # one device read for all the losses, after the run
+    return timer.stages[warmup:], timer.seconds[warmup:], records
 
 
 def write_losses(path: Path, records: list[dict]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["step", "warmup", "loss", "seconds", "skipped"])
+        writer = csv.DictWriter(f, fieldnames=["step", "warmup", "loss", "seconds"])
         writer.writeheader()
         for r in records:
             writer.writerow({**r, "loss": repr(r["loss"]), "seconds": f"{r['seconds']:.6f}"})
@@ -318,22 +363,18 @@ def main() -> None:
         args.num_workers if args.num_workers is not None else (cfg.get("data") or {}).get("num_workers", 4)
     )
     threads = apply_thread_policy(workers, args.threads)
-    precision = str((cfg.get("trainer") or {}).get("precision", "32-true"))
-    bf16 = precision.startswith("bf16") and device.type == "cuda"
-
-    def autocast():
-        return torch.autocast("cuda", dtype=torch.bfloat16) if bf16 else nullcontext()
+    trainer_cfg = cfg.get("trainer") or {}
+    precision = str(trainer_cfg.get("precision", "32-true")) if device.type == "cuda" else "32-true"
 
     with tempfile.TemporaryDirectory() as tmp:
         size = args.image_size or (cfg.get("data") or {}).get("image_size", 224)
         shards, gaps = synthetic_shards(Path(tmp), size, args.scenes)
         torch.manual_seed(args.seed)
-        module, datamodule, optimizer, scheduler = build(cfg, args, shards, gaps, device)
+        module, datamodule = build(cfg, args, shards, gaps)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
-        per_step, times, records = run(
-            module, datamodule, optimizer, scheduler, device, args.steps, args.warmup, autocast
-        )
+        per_step, times, records = run(module, datamodule, device, args.steps, args.warmup, precision,
+                                       trainer_cfg)  # fmt: skip
     if args.losses is not None:
         write_losses(args.losses, records)
 
@@ -360,7 +401,7 @@ def main() -> None:
         print(f"| {stage} | {ms:.1f} | {ms / (step * 1e3):.0%} |")
     total = statistics.median(sum(s.values()) for s in per_step) * 1e3
     print(f"| (sum of stages) | {total:.1f} | {total / (step * 1e3):.0%} |")
-    skipped = sum(r["skipped"] for r in records)
+    skipped = module.skipped_steps
     first, last = records[0]["loss"], records[-1]["loss"]
     print(f"\nloss: step 0 {first:.5f}, step {len(records) - 1} {last:.5f}; {skipped} skipped steps")
     if args.compare is not None:

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU throughput measurements (training step, render, model) in one command, on a CUDA machine with gsplat:
+# Every GPU throughput figure of the training step in one command, on a machine with CUDA and gsplat:
 #
 #   bash benchmarks/gpu_throughput.sh [OUT] [PART ...]        # OUT defaults to outputs/gpu-throughput
 #
@@ -10,6 +10,9 @@
 #   eager-again  the same run again: how far two identical runs drift apart (the yardstick for the others)
 #   tuned        the config as shipped (regional compile, fused AdamW), compared with eager's losses
 #   bf16-heads   tuned + model.net.options.head_precision=bf16, compared with eager's losses
+#   fit          `aesplat fit -c CONFIG` itself on synthetic shards, FIT_STEPS steps (default 300): median seconds
+#                per step after the first 50-step window (compilation), samples/s, peak memory and skipped steps,
+#                read from the run's own logs (benchmarks/fit_throughput.py; OUT/fit/ holds the shards and the run)
 # A part whose .md exists is skipped, so an interrupted run resumes where it stopped; delete a file to redo
 # that part. STEPS (default 200), WARMUP (5), SEED (0) and CONFIG (conf/re10k.yaml) change the runs; PYTHON
 # picks the interpreter (default .venv/bin/python, else python3). DEVICE=cpu runs the training parts on the
@@ -24,14 +27,16 @@ STEPS=${STEPS:-200}
 WARMUP=${WARMUP:-5}
 SEED=${SEED:-0}
 CONFIG=${CONFIG:-conf/re10k.yaml}
+FIT_STEPS=${FIT_STEPS:-300}
+FIT_WINDOW=${FIT_WINDOW:-50}
 DEVICE=${DEVICE:-cuda}
 if [[ -z ${PYTHON:-} ]]; then
     if [[ -x .venv/bin/python ]]; then PYTHON=.venv/bin/python; else PYTHON=python3; fi
 fi
 export PYTHONUNBUFFERED=1
-ALL_PARTS="tests render eager eager-again tuned bf16-heads"
+ALL_PARTS="tests render eager eager-again tuned bf16-heads fit"
 if [[ $DEVICE == cpu ]]; then
-    PARTS=${PARTS:-eager eager-again tuned bf16-heads}
+    PARTS=${PARTS:-eager eager-again tuned bf16-heads fit}
     [[ " $PARTS " != *" tests "* && " $PARTS " != *" render "* ]] || {
         echo "gpu_throughput.sh: the tests and render parts need CUDA (DEVICE=cpu)" >&2
         exit 2
@@ -82,6 +87,13 @@ run_part() {
         eager-again) bench eager-again "${EAGER[@]}" --compare "$OUT/eager.csv" ;;
         tuned) bench tuned --compare "$OUT/eager.csv" ;;
         bf16-heads) bench bf16-heads --set model.net.options.head_precision=bf16 --compare "$OUT/eager.csv" ;;
+        fit)
+            rm -rf "$OUT/fit/run"  # a failed or interrupted fit starts again
+            local extra=()
+            [[ $DEVICE != cpu ]] || extra=(--trainer.accelerator cpu --trainer.precision 32-true)
+            "$PYTHON" benchmarks/fit_throughput.py -c "$CONFIG" --out "$OUT/fit" --steps "$FIT_STEPS" \
+                --window "$FIT_WINDOW" -- "${extra[@]}"
+            ;;
     esac
 }
 

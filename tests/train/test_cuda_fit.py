@@ -19,14 +19,16 @@ STEPS = 12
 
 
 class RecordLosses(Callback):
-    """The loss each training step returned."""
+    """The loss each training step returned, and whether every parameter was on the GPU at its end."""
 
     def __init__(self) -> None:
         self.losses: list[float] = []
+        self.on_gpu: list[bool] = []
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         loss = outputs["loss"] if isinstance(outputs, dict) else outputs
         self.losses.append(float(loss))
+        self.on_gpu.append(all(p.is_cuda for p in pl_module.parameters()))
 
 
 def test_cuda_fit_with_gsplat_in_bf16_has_finite_losses_and_skips_nothing(smoke_shards, tmp_path, monkeypatch):
@@ -57,8 +59,9 @@ def test_cuda_fit_with_gsplat_in_bf16_has_finite_losses_and_skips_nothing(smoke_
     assert module.skipped_steps == 0, module.skip_guard.first_report
     assert not list(tmp_path.glob("nonfinite_step*.txt"))
     assert calls == {"gsplat": STEPS, "torch": 0}, "every training render must go through gsplat"
+    # Lightning's teardown moves the module back to the CPU after fit: where it trained is recorded per step.
+    assert record.on_gpu == [True] * STEPS, "a training step ran with parameters off the GPU"
     after = list(module.model.parameters())
-    assert all(p.is_cuda and torch.isfinite(p).all() for p in after)
-    assert sum(not torch.equal(a.cpu(), b.cpu()) for a, b in zip(before, after)) > 0.5 * len(
-        after
-    )  # it trained
+    assert all(torch.isfinite(p).all() for p in after)
+    changed = sum(not torch.equal(a.cpu(), b.cpu()) for a, b in zip(before, after))
+    assert changed > 0.5 * len(after), f"only {changed} of {len(after)} parameters changed"

@@ -14,8 +14,8 @@ from aesplat.train.optim import (
     build_param_groups,
     clip_and_check,
     current_learning_rates,
-    discard_gradients,
     resolve_impl,
+    skipped_when,
 )
 
 IMPLS = ("for_loop", "foreach", "fused")
@@ -120,10 +120,11 @@ def test_non_finite_step_leaves_params_and_adam_state_bit_identical(poison, impl
     loss.backward()
     if poison == "gradient":
         model[0].weight.grad[0, 0] = float("inf")
-    norm, finite = clip_and_check(model.parameters(), 0.5, loss)
-    assert not finite and not math.isfinite(norm.item())
-    discard_gradients(opt)
-    opt.step()
+    norm, found_inf = clip_and_check(model.parameters(), 0.5, loss)
+    assert found_inf.item() == 1.0 and found_inf.dtype == torch.float32 and not math.isfinite(norm.item())
+    with skipped_when(opt, found_inf):
+        opt.step()
+    assert not hasattr(opt, "found_inf"), "a later step must not see this step's flag"
     for before, after in zip(params, model.parameters()):
         assert torch.equal(before, after)
     after_state = _adam_snapshot(opt)
@@ -135,8 +136,8 @@ def test_non_finite_step_leaves_params_and_adam_state_bit_identical(poison, impl
 def test_clip_reports_the_unclipped_norm():
     p = nn.Parameter(torch.zeros(4))
     p.grad = torch.full((4,), 2.0)
-    norm, finite = clip_and_check([p], 0.5, torch.tensor(1.0))
-    assert finite and norm.item() == pytest.approx(4.0)
+    norm, found_inf = clip_and_check([p], 0.5, torch.tensor(1.0))
+    assert found_inf.item() == 0.0 and norm.item() == pytest.approx(4.0)
     assert p.grad.norm().item() == pytest.approx(0.5, rel=1e-4)
 
 
@@ -154,11 +155,10 @@ def _train_with_a_skipped_step(impl: str):
         loss.backward()
         if step == 2:
             model[0].weight.grad[1, 1] = float("nan")
-        _, finite = clip_and_check(model.parameters(), 0.5, loss)
-        assert finite == (step != 2)
-        if not finite:
-            discard_gradients(opt)
-        opt.step()
+        _, found_inf = clip_and_check(model.parameters(), 0.5, loss)
+        assert found_inf.item() == (step == 2)
+        with skipped_when(opt, found_inf):
+            opt.step()
         sched.step()
     return [p.detach().clone() for p in model.parameters()], _adam_snapshot(opt).values()
 
@@ -181,3 +181,20 @@ def test_auto_impl_is_fused_on_cpu_and_unknown_impl_is_an_error():
     assert resolve_impl("auto", [torch.zeros(2, device="meta")]) == "foreach"
     with pytest.raises(ValueError, match="optim.impl"):
         OptimConfig(impl="apex")
+
+
+@pytest.mark.parametrize("impl", IMPLS)
+def test_the_fused_kernel_skips_without_reading_the_flag_on_the_host(impl):
+    """Fused AdamW takes the flag on the device; the other kernels read it (one synchronisation on a GPU)."""
+    from .host_syncs import HostSyncCounter
+
+    model = nn.Linear(4, 2)
+    opt, _ = build_optimizer({"rest": list(model.named_parameters())}, OptimConfig(impl=impl), False, 10)
+    loss = model(torch.randn(3, 4)).pow(2).mean()
+    loss.backward()
+    with HostSyncCounter().count() as syncs:
+        _, found_inf = clip_and_check(model.parameters(), 0.5, loss)
+        with skipped_when(opt, found_inf):
+            opt.step()
+    assert len(syncs) == (0 if impl == "fused" else 1), syncs
+    assert float(opt.state[model.weight]["step"]) == 1.0  # a finite step is taken

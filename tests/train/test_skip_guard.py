@@ -110,6 +110,45 @@ def test_anomaly_report_finds_the_first_module_with_a_non_finite_output():
     assert "forward output of module '0' not finite" in report.summary()
 
 
+def _flag(value: float) -> torch.Tensor:
+    return torch.tensor(value)
+
+
+def test_deferred_flags_count_exactly_and_stop_at_the_read_naming_the_step():
+    """Flags read on the host some steps late (with the logs): the same counts and the same limit, and the
+    message names the step that crossed it and the step that read it."""
+    model = torch.nn.Linear(2, 1)
+    sgd = torch.optim.SGD(model.parameters())
+    guard = SkipGuard(OptimConfig(max_consecutive_skips=3, anomaly_report=False))
+    for step, flag in enumerate([0.0, 1.0, 0.0]):
+        guard.defer(step, _flag(flag))
+    assert guard.total == 0 and len(guard.pending_flags()) == 3  # nothing is known before the read
+    guard.resolve([f.item() for f in guard.pending_flags()], model, sgd, ".", current_step=2)
+    assert guard.total == 1 and list(guard.recent) == [False, True, False] and guard.pending == []
+    for step in range(3, 9):
+        guard.defer(step, _flag(1.0))
+    with pytest.raises(PersistentNonFiniteSteps, match=r"stopped at step 5: 3 steps in a row.*read at step 8"):
+        guard.resolve([1.0] * 6, model, sgd, ".", current_step=8)
+    with pytest.raises(ValueError, match="2 deferred steps but 1 flags"):
+        guard.defer(9, _flag(0.0)), guard.defer(10, _flag(0.0)), guard.resolve([0.0], model, sgd, ".")
+
+
+def test_a_skip_read_late_is_explained_with_its_own_batch(tmp_path):
+    """The first skipped step is re-run with its own batch when it is read; its gradients are gone by then."""
+    torch.manual_seed(0)
+    model = torch.nn.Linear(3, 1)
+    batches = {0: torch.ones(2, 3), 1: torch.full((2, 3), float("nan"))}
+    guard = SkipGuard(OptimConfig())
+    for step, x in batches.items():
+        guard.defer(step, _flag(float(step == 1)), lambda x=x: model(x).sum())
+    with pytest.warns(UserWarning, match="non-finite training step explained"):
+        guard.resolve([0.0, 1.0], model, torch.optim.SGD(model.parameters()), tmp_path, current_step=3)
+    assert guard.total == 1 and "AddmmBackward0" in guard.first_report  # step 0's batch would be finite
+    assert "gradients were gone" in guard.first_report and (tmp_path / "nonfinite_step1.txt").is_file()
+    guard.defer(4, _flag(1.0), lambda: model(batches[1]).sum())
+    assert guard.pending[-1][2] is None, "only the first skip is explained: no later batch is kept"
+
+
 def _fit_args(shards, run_dir: Path, max_steps: int) -> list[str]:
     """conf/smoke.yaml on the CPU, no logger, no validation, one epoch, last.ckpt at the end."""
     return ["fit", "-c", str(REPO / "conf" / "smoke.yaml"), "--data.root", str(shards),
@@ -150,11 +189,12 @@ def test_fit_with_a_persistent_nan_gradient_stops_and_names_the_operation(smoke_
     assert "parameter(s) had non-finite gradients (encoder." in report
 
 
-def test_fit_with_one_nan_step_skips_it_and_carries_on(smoke_shards, tmp_path, monkeypatch):
+@pytest.mark.parametrize("impl", ["auto", "for_loop"])  # fused (the skip decided on the device) | on the host
+def test_fit_with_one_nan_step_skips_it_and_carries_on(smoke_shards, tmp_path, monkeypatch, impl):
     # The first training step's render and its anomaly re-run (the second call) are poisoned.
     poison_renders(monkeypatch, poisoned_calls={1, 2})
     run_dir = tmp_path / "run"
-    cli.main(_fit_args(smoke_shards, run_dir, max_steps=4))
+    cli.main([*_fit_args(smoke_shards, run_dir, max_steps=4), "--model.optim.impl", impl])
     ckpt = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
     assert ckpt["global_step"] == 4 and ckpt["skipped_steps"] == 1
     assert ckpt["skip_guard"]["recent"] == [True, False, False, False]

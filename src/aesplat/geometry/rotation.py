@@ -39,8 +39,9 @@ def safe_normalize(x: Tensor, dim: int = -1) -> Tensor:
 
 def _fallback_axis(v: Tensor) -> Tensor:
     """A unit axis that is far from parallel to ``v`` (the coordinate axis of its smallest component)."""
-    idx = v.abs().argmin(dim=-1)
-    return F.one_hot(idx, 3).to(v.dtype)
+    idx = v.abs().argmin(dim=-1, keepdim=True)
+    # A comparison, not F.one_hot: one_hot reads the indices' range on the host (a GPU synchronisation).
+    return (idx == torch.arange(3, device=v.device)).to(v.dtype)
 
 
 def rot6d_to_matrix(d6: Tensor) -> Tensor:

@@ -39,7 +39,7 @@ from aesplat.types import BatchedExample, RenderOutput
 from .evaluation import EvalConfig, save_image, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, camera_loss, maybe_lpips
 from .metrics import highlight_psnr, overlap_bucket, psnr, relative_pose_errors, ssim
-from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates
+from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates, skipped_when
 from .rng import restore_rng_state, rng_state
 from .skip_guard import SkipGuard
 
@@ -84,11 +84,14 @@ class AESplatModule(LightningModule):
         if self.lpips_unavailable and loss.lpips_weight == 0:
             rank_zero_warn(f"LPIPS metric unavailable: {self.lpips_unavailable}")
         self.skip_guard = SkipGuard(optim)
+        self._host_batch: BatchedExample | None = None
         self.val_means = torch.nn.ModuleDict({k: MeanMetric() for k in _METRIC_KEYS})
         self._test_rows: list[dict] = []
 
     # ----------------------------------------------------------------------------------------- data movement
     def transfer_batch_to_device(self, batch: BatchedExample, device: torch.device, dataloader_idx: int):
+        if self.training:
+            self._host_batch = batch
         return batch.to(device)
 
     def on_after_batch_transfer(self, batch: BatchedExample, dataloader_idx: int) -> BatchedExample:
@@ -127,11 +130,11 @@ class AESplatModule(LightningModule):
         self._sync_curriculum()
 
     def training_step(self, batch: BatchedExample, batch_idx: int) -> Tensor:
-        step, optimizer = self.global_step, self.optimizers()
-        scheduler = self.lr_schedulers()
-        for name, lr in current_learning_rates(optimizer.optimizer).items():
-            self.log(f"lr/{name}", lr, on_step=True, on_epoch=False)
-
+        """One optimizer step. Nothing in it waits for the device except on the steps that read values back
+        (``_reads_back``): the non-finite check and the skip are decided on the device (fused AdamW), and the
+        logged scalars and skip flags are read in one transfer every ``trainer.log_every_n_steps`` steps."""
+        step, optimizer, scheduler = self.global_step, self.optimizers(), self.lr_schedulers()
+        host_batch = self._host_batch  # the batch as the loader gave it, for the anomaly re-run of a skip
         with_context = self.loss_fn.renders_context
         out, rendered = self(batch, with_context=with_context, predict_cameras=self.pose_weight > 0)
         context_pred = None
@@ -148,35 +151,69 @@ class AESplatModule(LightningModule):
         optimizer.zero_grad(set_to_none=True)
         # Always backward, even on a NaN loss: under DDP every rank must join the gradient all-reduce.
         self.manual_backward(terms["total"])
-        grad_norm, finite = clip_and_check(self.model.parameters(), self.optim_cfg.grad_clip, terms["total"])
-        non_finite = self.trainer.strategy.reduce(
-            torch.tensor(float(not finite), device=self.device), reduce_op="sum"
-        )
-        skipped = non_finite.item() > 0
-        if skipped:  # drop the gradients (the step below then changes nothing); explain the first such step
-            rerun = lambda: self.loss_fn(self(batch)[1].color, batch.target.images)["total"]  # noqa: E731
-            self.skip_guard.skip(step, self.model, optimizer.optimizer, rerun,
-                                 self.trainer.default_root_dir, self.global_rank)  # fmt: skip
-        optimizer.step()
+        grad_norm, found_inf = clip_and_check(self.model.parameters(), self.optim_cfg.grad_clip, terms["total"])
+        # Every rank takes the same decision (an all-reduce on the device, no wait).
+        found_inf = self.trainer.strategy.reduce(found_inf, reduce_op="sum").clamp(max=1.0)
+        rerun = None
+        if self.skip_guard.explains_next_skip and host_batch is not None:
+            rerun = lambda: self._rerun_loss(host_batch)  # noqa: E731
+        self.skip_guard.defer(step, found_inf, rerun)
+        fused = bool(optimizer.optimizer.defaults.get("fused"))
+        if not fused:  # these kernels need the decision on the host anyway: account the step before it
+            self._read_back(step, {})
+        with skipped_when(optimizer.optimizer, found_inf):
+            optimizer.step()
         scheduler.step()
         self._sync_curriculum()  # so a stream started between steps (new epoch, resume) sees the same step
 
-        b = batch.batch_size
-        self.log("train/loss", terms["total"], prog_bar=True, batch_size=b)
-        self.log("train/mse", terms["mse"], batch_size=b)
-        for key in ("lpips", "context_mse", "context_lpips", "pose_rotation", "pose_translation", "pose_focal"):
-            if key in terms:
-                self.log(f"train/{key}", terms[key], batch_size=b)
-        with torch.no_grad():
-            train_psnr = psnr(rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1)).mean()
-        self.log("train/psnr", train_psnr, prog_bar=True, batch_size=b)
-        self.log("train/grad_norm", grad_norm.float(), batch_size=b)
-        self.log("train/skipped_steps", float(self.skipped_steps), batch_size=b)
+        if self._reads_back(step):
+            scalars = {
+                f"train/{'loss' if key == 'total' else key}": terms[key]
+                for key in _TRAIN_SCALARS
+                if key in terms
+            }
+            with torch.no_grad():
+                psnr_ = psnr(rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1)).mean()
+            scalars.update({"train/psnr": psnr_, "train/grad_norm": grad_norm})
+            host = self._read_back(step, scalars)  # stops the run when skipping is no longer rare
+            host["train/skipped_steps"] = torch.tensor(float(self.skipped_steps))
+            for name, lr in current_learning_rates(optimizer.optimizer).items():
+                host[f"lr/{name}"] = torch.tensor(lr)
+            b = batch.batch_size
+            for key, value in host.items():  # host tensors: Lightning reads them without touching the device
+                self.log(key, value, prog_bar=key in ("train/loss", "train/psnr"), batch_size=b)
         every = self.eval_cfg.log_images_every_n_steps
         if every > 0 and self.global_step % every == 0:
             self._log_images("train/images", batch, rendered)
-        self.skip_guard.record(step, skipped)  # stops the run when skipping is no longer rare
         return terms["total"].detach()
+
+    def _reads_back(self, step: int) -> bool:
+        """Whether this step reads values back to the host: when Lightning writes its logs (its logger
+        connector's rule: every ``trainer.log_every_n_steps`` batches, or when the run is stopping)."""
+        every = self.trainer.log_every_n_steps
+        return self.trainer.should_stop or (every > 0 and (step + 1) % every == 0)
+
+    def _read_back(self, step: int | None, scalars: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Read ``scalars`` and the deferred skip flags to the host in one transfer, account the deferred steps
+        (``SkipGuard.resolve``: count, explain, stop) and return the scalars as host tensors."""
+        flags = self.skip_guard.pending_flags()
+        values = [v.detach().float().reshape(()) for v in scalars.values()] + [f.reshape(()) for f in flags]
+        if not values:
+            return {}
+        device = values[-1].device
+        host = torch.stack([v.to(device) for v in values]).cpu()
+        if flags:
+            self.skip_guard.resolve(host[len(scalars):].tolist(), self.model, self.optimizers().optimizer,
+                                    self.trainer.default_root_dir, self.global_rank, step)  # fmt: skip
+        return dict(zip(scalars, host[: len(scalars)].unbind()))
+
+    def _rerun_loss(self, host_batch: BatchedExample) -> Tensor:
+        """A skipped step's loss recomputed from its batch (the anomaly re-run; forward and loss only)."""
+        batch = self.on_after_batch_transfer(self.transfer_batch_to_device(host_batch, self.device, 0), 0)
+        return self.loss_fn(self(batch)[1].color, batch.target.images)["total"]
+
+    def on_train_end(self) -> None:
+        self._read_back(None, {})  # the last deferred skip flags: the count is exact when fit returns
 
     def on_train_epoch_end(self) -> None:
         """Log the data stream's skip counters (corrupt samples / shards, curriculum rejections) per epoch."""
@@ -276,6 +313,8 @@ class AESplatModule(LightningModule):
 
     # ----------------------------------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
+        if self._trainer is not None and self.trainer.training:
+            self._read_back(None, {})  # the deferred skip flags belong to the saved counters
         checkpoint["skipped_steps"] = self.skipped_steps
         checkpoint["skip_guard"] = self.skip_guard.state_dict()
         checkpoint["rng"] = rng_state()
@@ -303,6 +342,8 @@ class AESplatModule(LightningModule):
 
 
 _METRIC_KEYS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg")
+_TRAIN_SCALARS = ("total", "mse", "lpips", "context_mse", "context_lpips", "pose_rotation", "pose_translation",
+                  "pose_focal")  # fmt: skip
 
 
 def _as(cls, value):

@@ -8,13 +8,15 @@ When skipped steps stop being rare, ``skip_guard.SkipGuard`` ends the run.
 
 ``impl`` picks torch's AdamW kernel: ``fused`` (one kernel over all parameters; CUDA and CPU since torch 2.4),
 ``foreach`` (multi-tensor ops) or ``for_loop`` (one parameter at a time, the reference). All three skip a
-parameter whose ``grad`` is None, which is what the non-finite step guard relies on.
+parameter whose ``grad`` is None; ``fused`` also skips a whole step on a device-side flag (``skipped_when``),
+so with it a training step needs no host synchronisation to decide whether to skip.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -150,20 +152,44 @@ def current_learning_rates(optimizer: torch.optim.Optimizer) -> dict[str, float]
     return {group.get("name", str(i)): group["lr"] for i, group in enumerate(optimizer.param_groups)}
 
 
-def clip_and_check(parameters: Iterable[Tensor], max_norm: float, loss: Tensor) -> tuple[Tensor, bool]:
-    """Clip the gradient norm in place (when ``max_norm`` > 0) and say whether loss and gradients are finite.
+def clip_and_check(parameters: Iterable[Tensor], max_norm: float, loss: Tensor) -> tuple[Tensor, Tensor]:
+    """Clip the gradient norm in place (when ``max_norm`` > 0) and flag a non-finite loss or gradient.
 
-    Returns (total gradient norm before clipping, finite). The norm is NaN/Inf when any gradient is.
+    Returns (total gradient norm before clipping, ``found_inf``): a float32 scalar on the gradients' device,
+    1.0 when the loss or any gradient is NaN/Inf, else 0.0. Nothing here waits for the device (no ``.item()``,
+    no ``bool``): the flag goes to ``skipped_when`` as it is, and the host reads it later, with the logs.
     """
     grads = [p for p in parameters if p.grad is not None]
     if max_norm > 0:
         norm = torch.nn.utils.clip_grad_norm_(grads, max_norm)
     elif grads:
-        norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(p.grad) for p in grads]))
+        norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm([p.grad for p in grads])))
     else:
         norm = torch.zeros((), device=loss.device)
-    finite = bool(torch.isfinite(loss.detach()).all() and torch.isfinite(norm))
-    return norm, finite
+    # The norm is NaN/Inf when any gradient is; a NaN loss with finite gradients is caught by the loss itself.
+    finite = torch.isfinite(norm) & torch.isfinite(loss.detach().to(norm.device)).all()
+    return norm, (~finite).float()
+
+
+@contextmanager
+def skipped_when(optimizer: torch.optim.Optimizer, found_inf: Tensor) -> Iterator[None]:
+    """Within the block, ``optimizer.step()`` changes nothing when ``found_inf`` (``clip_and_check``) is 1.
+
+    Fused AdamW takes the flag on the device, as ``torch.amp.GradScaler`` hands it over: the kernel skips the
+    update and gives the step counters back, with no host synchronisation. The foreach and for-loop kernels
+    take no such flag, so for them the host reads it (one synchronisation) and drops the gradients.
+    Either way parameters, moments and step counters stay bit-identical on a flagged step.
+    """
+    if optimizer.defaults.get("fused"):
+        optimizer.found_inf = found_inf.float()  # read by torch.optim.Adam/AdamW.step
+        try:
+            yield
+        finally:
+            del optimizer.found_inf
+    else:
+        if found_inf.item():
+            discard_gradients(optimizer)
+        yield
 
 
 def discard_gradients(optimizer: torch.optim.Optimizer) -> None:

@@ -7,6 +7,14 @@ were skipped. On the first skipped step it re-runs that step's forward and backw
 ``torch.autograd.detect_anomaly`` and reports which operation produced the first non-finite value and where in
 the source it was called (a warning, and ``nonfinite_step<N>.txt`` in the run directory). Its counters are
 part of the checkpoint, so a resumed run judges the same window.
+
+The skip itself is decided on the device (``optim.skipped_when``); the host learns of it later, so that a
+training step need not wait for the device: ``defer`` keeps each step's flag and ``resolve`` accounts the
+pending steps in order once their flags have been read (the module reads them with its logs, every
+``trainer.log_every_n_steps`` steps, and before a checkpoint and at the end of training). A run that keeps
+skipping is therefore stopped at the first read after the limit was crossed, and the message names the step
+that crossed it. The first skipped step is re-run with its own batch; when it was read some steps later, the
+weights are those of the read (unchanged by the skipped step itself) and its gradients are gone.
 """
 
 from __future__ import annotations
@@ -14,7 +22,7 @@ from __future__ import annotations
 import re
 import warnings
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields, is_dataclass
 from pathlib import Path
 
@@ -43,6 +51,7 @@ class AnomalyReport:
     traceback: str = ""  # the forward call's full traceback, as anomaly detection prints it
     error: str | None = None  # a re-run that failed for another reason
     bad_parameter_count: int = 0  # bad_parameters lists the first few of them
+    gradients_known: bool = True  # False: the step was read after its gradients were gone (no names)
 
     def summary(self) -> str:
         """One paragraph: where the first non-finite value came from."""
@@ -60,10 +69,12 @@ class AnomalyReport:
         bad = ", ".join(
             self.bad_parameters + (["..."] if self.bad_parameter_count > len(self.bad_parameters) else [])
         )
-        return (
-            f"first skipped step {self.step}: {'; '.join(where)}. "
+        gradients = (
             f"{self.bad_parameter_count} parameter(s) had non-finite gradients{f' ({bad})' if bad else ''}."
+            if self.gradients_known
+            else "Its gradients were gone when the skip was read, so no parameter is named."
         )
+        return f"first skipped step {self.step}: {'; '.join(where)}. {gradients}"
 
     def text(self) -> str:
         """The full report written to the run directory."""
@@ -75,8 +86,9 @@ class AnomalyReport:
 class SkipGuard:
     """Counts skipped steps over a sliding window and stops the run when they are no longer rare.
 
-    ``record(step, skipped)`` is called once per training step (after the decision, which every DDP rank
-    shares); ``skip(...)`` is called on the skipped ones, before their gradients are dropped.
+    ``defer(step, flag, rerun)`` is called once per training step with the step's device-side flag (the same on
+    every DDP rank); ``resolve(flags, ...)`` accounts the deferred steps once the host has read their flags:
+    ``skip(...)`` on the skipped ones, then ``record(step, skipped)`` for each.
     """
 
     def __init__(self, cfg: OptimConfig) -> None:
@@ -91,20 +103,58 @@ class SkipGuard:
         self.consecutive = 0
         self.total = 0
         self.first_report = ""  # summary of the first skipped step's anomaly re-run ("" until there is one)
+        self.pending: list[tuple[int, Tensor, Callable[[], Tensor] | None]] = []  # deferred, not yet read
+
+    @property
+    def explains_next_skip(self) -> bool:
+        """Whether the next skipped step will be re-run under anomaly detection (the first one only)."""
+        return self.total == 0 and self.cfg.anomaly_report
+
+    def defer(self, step: int, found_inf: Tensor, rerun: Callable[[], Tensor] | None = None) -> None:
+        """Keep a step's flag (a device scalar, 1 = skipped) until ``resolve``; ``rerun`` recomputes the step's
+        loss, kept only while the first skipped step is still to be explained."""
+        self.pending.append((step, found_inf, rerun if self.explains_next_skip else None))
+
+    def pending_flags(self) -> list[Tensor]:
+        """The deferred steps' flags, in step order (read them on the host in one transfer)."""
+        return [flag for _, flag, _ in self.pending]
+
+    def resolve(self, flags: Sequence[float], model: nn.Module, optimizer: torch.optim.Optimizer,
+                run_dir: str | Path, rank: int = 0, current_step: int | None = None) -> None:  # fmt: skip
+        """Account the deferred steps, ``flags`` being their flags as read on the host: count (and explain) the
+        skipped ones and judge the window step by step; raises ``PersistentNonFiniteSteps`` like ``record``.
+        ``current_step``: the step whose gradients are still in the parameters (named in the report)."""
+        pending, self.pending = self.pending, []
+        if len(flags) != len(pending):
+            raise ValueError(f"{len(pending)} deferred steps but {len(flags)} flags")
+        for (step, _, rerun), flag in zip(pending, flags):
+            skipped = flag > 0
+            if skipped:
+                self.skip(step, model, optimizer, rerun, run_dir, rank, own_gradients=step == current_step)
+            try:
+                self.record(step, skipped)
+            except PersistentNonFiniteSteps as err:
+                if current_step is None or current_step == step:
+                    raise
+                raise PersistentNonFiniteSteps(f"{err} (Skips are read with the logs: this was read at step "
+                                               f"{current_step}.)") from None  # fmt: skip
 
     def skip(self, step: int, model: nn.Module, optimizer: torch.optim.Optimizer,
-             rerun: Callable[[], Tensor], run_dir: str | Path, rank: int = 0) -> None:  # fmt: skip
-        """Drop this step's gradients (the optimizer step then changes nothing); explain it if it is the first.
+             rerun: Callable[[], Tensor] | None, run_dir: str | Path, rank: int = 0,
+             own_gradients: bool = True) -> None:  # fmt: skip
+        """Count a skipped step and drop the gradients in the parameters; explain the step if it is the first.
 
-        ``rerun`` recomputes this step's loss (forward, rendering and loss, not the backward).
+        ``rerun`` recomputes this step's loss (forward, rendering and loss, not the backward); None: no re-run.
+        ``own_gradients``: the parameters still hold this step's gradients (their non-finite ones are named).
         """
         if rank == 0:  # every rank takes the same decision; one warning is enough
             warnings.warn(f"step {step}: non-finite loss or gradient, update skipped", stacklevel=2)
-        first = self.total == 0 and self.cfg.anomaly_report
-        bad = non_finite_gradients(model) if first else ([], 0)
+        first = self.explains_next_skip and rerun is not None
+        bad = non_finite_gradients(model) if first and own_gradients else ([], 0)
         discard_gradients(optimizer)  # before the re-run: its graph and gradients need the memory
         if first:
             report = explain_non_finite_step(step, model, rerun, *bad)
+            report.gradients_known = own_gradients
             self.first_report = report.summary()
             path = Path(run_dir) / f"nonfinite_step{step}{f'_rank{rank}' if rank else ''}.txt"
             try:

@@ -1,0 +1,121 @@
+"""Seconds per step of `aesplat fit` itself (Lightning, callbacks, logging), read from the run's own logs.
+
+    python benchmarks/fit_throughput.py -c conf/re10k.yaml --out outputs/fit-throughput --steps 300
+    python benchmarks/fit_throughput.py -c conf/smoke.yaml --out /tmp/fit --steps 20 --window 5 -- \
+        --trainer.accelerator cpu                                          # extra `aesplat fit` arguments
+
+Writes synthetic scenes as shards at the config's image size into OUT/shards (kept for the next call), then
+runs the product's command line, printed before it starts:
+
+    aesplat fit -c CONFIG --data.root OUT/shards --trainer.max_steps STEPS --trainer.logger+=CSVLogger ...
+
+with the curriculum widened to the gaps the synthetic scenes hold, validation and checkpoints off (a ``large``
+checkpoint is about 12 GB) and the run's logs in OUT/run/metrics.csv. The ``Throughput`` callback logs
+``train/sec_per_step``, ``train/samples_per_sec`` and ``train/peak_memory_gib`` over windows of ``--window``
+steps (the logging interval is set to the same, so each window is written once). The report is the median
+over the windows after the first (the first holds compilation and warm-up), the peak memory and the skipped
+steps (``train/skipped_steps``, which the module logs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from aesplat.data import convert_dataset, generate_dataset
+from aesplat.train.loss import vgg16_weights_path
+
+
+def shards_for(config: list[str], out: Path) -> tuple[Path, list[int]]:
+    """Synthetic shards at the configs' image size in ``out/shards`` (made once); the gap range they hold."""
+    size = 224
+    for path in config:
+        size = ((yaml.safe_load(Path(path).read_text()) or {}).get("data") or {}).get("image_size", size)
+    shards, gaps_file = out / "shards", out / "shards" / "gaps.txt"
+    if not gaps_file.is_file():
+        info = generate_dataset(out / "src", scenes=4, test_scenes=1, frames=32, seed=0, progress=False)
+        convert_dataset(out / "src", shards, size=size, progress=False)
+        gaps_file.write_text(" ".join(str(g) for g in info["gap_range"]))
+    return shards, [int(g) for g in gaps_file.read_text().split()]
+
+
+def fit_command(config: list[str], shards: Path, gaps: list[int], run_dir: Path, steps: int, window: int,
+                extra: list[str]) -> list[str]:  # fmt: skip
+    gap = f"[{gaps[0]}, {gaps[1]}]"
+    return [
+        "aesplat", "fit", *(a for c in config for a in ("-c", c)), "--data.root", str(shards),
+        "--data.gap_initial", gap, "--data.gap_final", gap, "--trainer.max_steps", str(steps),
+        "--data.train_batches_per_epoch", str(steps), "--trainer.default_root_dir", str(run_dir),
+        "--trainer.limit_val_batches", "0", "--trainer.num_sanity_val_steps", "0",
+        "--checkpoint.save_top_k", "0", "--last_checkpoint.save_last", "false",
+        "--trainer.logger+=CSVLogger", "--trainer.logger.save_dir", str(run_dir), "--trainer.logger.name", "",
+        "--trainer.logger.version", "", "--trainer.log_every_n_steps", str(window), "--throughput.window",
+        str(window), "--trainer.enable_progress_bar", "false", *extra,
+    ]  # fmt: skip
+
+
+def summarize(metrics_csv: Path) -> dict[str, float | int | str]:
+    """The figures of a run from its metrics.csv: medians over the windows after the first."""
+    with metrics_csv.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+
+    def column(key: str) -> list[float]:
+        return [float(r[key]) for r in rows if r.get(key) not in (None, "")]
+
+    seconds, samples = column("train/sec_per_step"), column("train/samples_per_sec")
+    if len(seconds) < 2:
+        raise SystemExit(f"{metrics_csv}: {len(seconds)} throughput window(s); run more steps than 2 windows")
+    skipped = column("train/skipped_steps")
+    return {
+        "windows after the first": len(seconds) - 1,
+        "seconds per step (median)": statistics.median(seconds[1:]),
+        "seconds per step (min - max)": f"{min(seconds[1:]):.3f} - {max(seconds[1:]):.3f}",
+        "samples / s (median)": statistics.median(samples[1:]),
+        "first window, s / step (compilation, warm-up)": seconds[0],
+        "peak memory (GiB)": max(column("train/peak_memory_gib") or [float("nan")]),
+        "skipped steps": int(skipped[-1]) if skipped else "not logged",
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", "-c", action="append", required=True, help="config file(s), layered")
+    p.add_argument("--out", type=Path, required=True, help="shards and the run go here")
+    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--window", type=int, default=50, help="steps per throughput window (and logging interval)")
+    p.add_argument("extra", nargs="*", help="more `aesplat fit` arguments, after --")
+    args = p.parse_args()
+    if args.steps < 2 * args.window:
+        raise SystemExit(f"--steps {args.steps}: need at least two windows of {args.window} steps")
+    run_dir = args.out / "run"
+    if run_dir.exists():
+        raise SystemExit(f"{run_dir} exists: remove it (or pick another --out) to measure again")
+    shards, gaps = shards_for(args.config, args.out)
+    extra = list(args.extra)
+    if not vgg16_weights_path().is_file():  # as bench_train_step.py does: time it without LPIPS
+        print(
+            f"note: LPIPS weights missing ({vgg16_weights_path()}); timing with lpips_weight 0", file=sys.stderr
+        )
+        extra = ["--model.loss.lpips_weight", "0", "--model.eval.metrics_lpips", "false", *extra]
+    command = fit_command(args.config, shards, gaps, run_dir, args.steps, args.window, extra)
+    print(f"$ {shlex.join(command)}\n", flush=True)
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    subprocess.run([sys.executable, "-m", "aesplat.cli", *command[1:]], check=True, env=env)
+    figures = summarize(run_dir / "metrics.csv")
+    print(f"\n## aesplat fit {' '.join(f'-c {c}' for c in args.config)}: {args.steps} steps, "
+          f"windows of {args.window}\n")  # fmt: skip
+    print("| measure | value |\n| --- | ---: |")
+    for key, value in figures.items():
+        print(f"| {key} | {value:.3f} |" if isinstance(value, float) else f"| {key} | {value} |")
+
+
+if __name__ == "__main__":
+    main()
