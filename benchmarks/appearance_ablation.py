@@ -19,7 +19,7 @@
    ``ablation.png`` (one panel per set and camera source).
 
 Data and checkpoints go under ``--work`` (default outputs/ablation/). The runner resumes: a run whose
-``test/summary.json`` exists is not retrained, an interrupted fit continues from its last checkpoint, and the
+``test-latest/summary.json`` exists is not retrained, an interrupted fit continues from its last checkpoint, and the
 report is rebuilt from every run's results. A run made with other settings is an error, never silently reused.
 """
 
@@ -389,7 +389,7 @@ def main(argv: list[str] | None = None) -> None:
             train_and_test(run, shards[run.dataset], work, settings)
             results[run] = result(run, work, settings)
             if results[run] is None:
-                raise RuntimeError(f"{run} finished without {run.directory(work) / 'test' / 'summary.json'}")
+                raise RuntimeError(f"{run} finished without {run.directory(work) / 'test-latest' / 'summary.json'}")
         # other shards may have finished runs meanwhile: report everything on disk
         results = {run: r for run in runs if (r := result(run, work, settings)) is not None}
     missing = [run for run in results if not (run.directory(work) / "sh_energy.json").exists()]

@@ -142,6 +142,10 @@ def test_ablation_rows_change_the_appearance_and_the_schedule(parsed, name):
 def test_cross_dataset_evaluations_read_the_other_data_set(parsed, files, root):
     config = config_of(parsed, *files, command="test")
     assert config["data"]["root"] == root
+    # With --ckpt_path the checkpoint's `model` section replaces the config's: an overlay's model keys would be
+    # silently lost, so it has none; its results go to a run directory of their own.
+    assert "model" not in yaml.safe_load((REPO / files[-1]).read_text())
+    assert config["trainer"]["default_root_dir"].endswith(f"/eval/{root.rsplit('/', 1)[1]}")
 
 
 def test_the_depth_range_is_the_models_alone(parsed):

@@ -48,7 +48,8 @@ def write_tiny_checkpoint(
     ckpt = run_dir / "checkpoints" / "last.ckpt"
     ckpt.parent.mkdir(parents=True, exist_ok=True)
     trainer.save_checkpoint(ckpt, weights_only=True)
-    data = {"root": data_root, "image_size": image_size, "eval_batch_size": 1}
+    # data.near / far as runs wrote them before the depth range became the model's alone: still read
+    data = {"root": data_root, "image_size": image_size, "near": 0.1, "far": 20.0, "eval_batch_size": 1}
     (run_dir / "config.yaml").write_text(yaml.safe_dump({"data": data}))
     return ckpt
 
