@@ -19,8 +19,8 @@
    ``ablation.png`` (one panel per set and camera source).
 
 Data and checkpoints go under ``--work`` (default outputs/ablation/). The runner resumes: a run whose
-``test-latest/summary.json`` exists is not retrained, an interrupted fit continues from its last checkpoint, and the
-report is rebuilt from every run's results. A run made with other settings is an error, never silently reused.
+``test-latest/summary.json`` exists is not retrained, an interrupted fit continues from its last checkpoint, and
+the report is rebuilt from every run's results. A run made with other settings is an error, never silently reused.
 """
 
 from __future__ import annotations
@@ -389,7 +389,8 @@ def main(argv: list[str] | None = None) -> None:
             train_and_test(run, shards[run.dataset], work, settings)
             results[run] = result(run, work, settings)
             if results[run] is None:
-                raise RuntimeError(f"{run} finished without {run.directory(work) / 'test-latest' / 'summary.json'}")
+                summary = run.directory(work) / "test-latest" / "summary.json"
+                raise RuntimeError(f"{run} finished without {summary}")
         # other shards may have finished runs meanwhile: report everything on disk
         results = {run: r for run in runs if (r := result(run, work, settings)) is not None}
     missing = [run for run in results if not (run.directory(work) / "sh_energy.json").exists()]
