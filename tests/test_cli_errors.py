@@ -74,8 +74,8 @@ def test_missing_or_empty_data_root(command, capsys, tmp_path):
     code, err = aesplat(capsys, command, *common(tmp_path / "nowhere", run_dir))
     assert code == 1
     assert one_line(err) == (
-        f"aesplat {command}: data root {tmp_path / 'nowhere'} does not exist: give --data.root the shard "
-        "folder that `python data_prep/to_shards.py` wrote"
+        f"aesplat {command}: no shards in {tmp_path / 'nowhere'}: the folder does not exist; give the folder "
+        "`python data_prep/to_shards.py --out` wrote, or create it with that command"
     )
     (tmp_path / "empty").mkdir()
     code, err = aesplat(capsys, command, *common(tmp_path / "empty", run_dir))
@@ -177,7 +177,7 @@ def test_the_console_script_prints_one_line_and_debug_shows_the_traceback(tmp_pa
     proc = subprocess.run([sys.executable, "-m", "aesplat.cli", *args], cwd=REPO, env=env, capture_output=True,
                           text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 1 and proc.stdout == ""
-    assert one_line(proc.stderr).startswith(f"aesplat test: data root {tmp_path / 'nowhere'} does not exist")
+    assert one_line(proc.stderr).startswith(f"aesplat test: no shards in {tmp_path / 'nowhere'}: the folder")
     monkeypatch.setenv("AESPLAT_DEBUG", "1")  # the error itself, with its traceback
     with pytest.raises(FileNotFoundError, match="does not exist"):
         cli.main(args)

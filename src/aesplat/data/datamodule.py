@@ -222,8 +222,8 @@ def find_shards(root: str | Path, split: str) -> list[str]:
     root = Path(root)
     if not root.is_dir():
         raise MissingFileError(
-            f"data root {root} does not exist: give --data.root the shard folder that "
-            "`python data_prep/to_shards.py` wrote"
+            f"no shards in {root}: the folder does not exist; give the folder `python data_prep/to_shards.py "
+            "--out` wrote, or create it with that command"
         )
     folder = root / split
     path = root / "manifest.json"

@@ -294,7 +294,10 @@ class AESplatModule(LightningModule):
 
     @property
     def skipped_steps(self) -> int:
-        """Training steps skipped for a non-finite loss or gradient (checkpointed)."""
+        """Training steps skipped for a non-finite loss or gradient (checkpointed). Exact when read: deferred
+        skip flags are read first (one host synchronisation when some are pending)."""
+        if self.skip_guard.pending and self._trainer is not None:
+            self._read_back(None, {})
         return self.skip_guard.total
 
     @property
