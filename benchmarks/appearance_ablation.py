@@ -20,7 +20,8 @@
 
 Data and checkpoints go under ``--work`` (default outputs/ablation/). The runner resumes: a run whose
 ``test-latest/summary.json`` exists is not retrained, an interrupted fit continues from its last checkpoint, and
-the report is rebuilt from every run's results. A run made with other settings is an error, never silently reused.
+the report is rebuilt from every run's results. A run made with other settings is an error, never silently
+reused.
 """
 
 from __future__ import annotations
