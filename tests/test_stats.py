@@ -38,6 +38,7 @@ def test_paired_t_p_and_holm_by_hand():
     assert math.isnan(paired_t_p([1.0])[0])
     assert paired_t_p([0.5, 0.5]) == (0.0, 2) and paired_t_p([0.0, 0.0]) == (1.0, 2)
     # Holm: sorted 0.01, 0.02, 0.04 -> 3*0.01, max(0.03, 2*0.02), max(0.04, 1*0.04); NaN is left out.
-    assert holm([0.04, 0.01, float("nan"), 0.02]) == pytest.approx([0.04, 0.03, float("nan"), 0.04], nan_ok=True)
+    adjusted = holm([0.04, 0.01, float("nan"), 0.02])
+    assert adjusted == pytest.approx([0.04, 0.03, float("nan"), 0.04], nan_ok=True)
     assert holm([0.5, 0.6]) == [1.0, 1.0] and holm([]) == []
     assert holm([0.03, 0.001]) == pytest.approx([0.03, 0.002])  # the running maximum keeps the order

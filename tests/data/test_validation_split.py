@@ -31,7 +31,8 @@ def test_validation_scenes_come_from_their_own_seeds_and_change_no_train_or_test
     default = generate_dataset(tmp_path / "b", scenes=3, test_scenes=3, **TINY)
     more = generate_dataset(tmp_path / "c", scenes=3, test_scenes=3, val_scenes=2, **TINY)
     assert (without["validation_scenes"], default["validation_scenes"], more["validation_scenes"]) == (0, 1, 2)
-    assert not (tmp_path / "a" / "validation").exists() and not (tmp_path / "a" / "validation_index.json").exists()
+    assert not (tmp_path / "a" / "validation").exists()
+    assert not (tmp_path / "a" / "validation_index.json").exists()
     for other in ("b", "c"):  # train and test chunks and the test evaluation index: byte for byte the same
         for split in ("train", "test"):
             assert _files(tmp_path / other, split) == _files(tmp_path / "a", split)
@@ -39,7 +40,7 @@ def test_validation_scenes_come_from_their_own_seeds_and_change_no_train_or_test
             tmp_path / "a" / "evaluation_index.json"
         ).read_bytes()
     val = [s for c in list_chunks(tmp_path / "c" / "validation") for s in load_chunk(c)]
-    rest = [s for split in ("train", "test") for c in list_chunks(tmp_path / "c" / split) for s in load_chunk(c)]
+    rest = [s for sp in ("train", "test") for c in list_chunks(tmp_path / "c" / sp) for s in load_chunk(c)]
     assert [s["key"] for s in val] == ["validation003_00000", "validation003_00001"]
     for scene in val:  # other scenes, not copies of a train or test scene
         assert not any(torch.equal(scene["cameras"], s["cameras"]) for s in rest)
