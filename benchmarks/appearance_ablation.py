@@ -17,6 +17,11 @@
    what the view-dependent part learned: the energy of the predicted higher-order SH coefficients on the test
    scenes, measured once per finished run from its checkpoint and kept in RUN/sh_energy.json), and
    ``ablation.png`` (one panel per set and camera source).
+4. The primary comparisons, fixed here for every run of the grid (``PRIMARY``): every row against ``full``,
+   posed, on PSNR over the highlight pixels of the specular set and on overall PSNR of the diffuse set. For
+   that family of ten, ``primary.csv`` and the table give the paired t-test's p-value per comparison and its
+   Holm adjustment; every other difference in the table is exploratory. ``--from-runs RUNS.csv`` rebuilds the
+   report from a ``runs.csv`` (e.g. the committed one) without the runs' folders.
 
 Data and checkpoints go under ``--work`` (default outputs/ablation/). The runner resumes: a run whose
 ``test-latest/summary.json`` exists is not retrained, an interrupted fit continues from its last checkpoint, and
@@ -35,7 +40,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from aesplat.stats import t_interval
+from aesplat.stats import holm, paired_t_p, t_interval
 
 REPO = Path(__file__).resolve().parents[1]
 ROWS = ("full", "no_gvsre", "no_wcm", "baseline_i2dc", "baseline", "i2dc_only")  # the paper's table order
@@ -45,6 +50,8 @@ LABELS = {"psnr": "PSNR", "psnr_highlight": "PSNR highlight", "psnr_rest": "PSNR
 # What the view-dependent part learned, per run: mean over the test scenes' Gaussians of the squared SH
 # coefficients of degree >= 1 (summed over coefficients and colour channels), and that over the DC term's.
 SH_METRICS = ("sh_high", "sh_high_ratio")
+# The primary family: (set, cameras, metric), each row against `full`; the rest of the table is exploratory.
+PRIMARY = (("specular", "dataset", "psnr_highlight"), ("diffuse", "dataset", "psnr"))
 FRAMES = 32  # per scene; the config's curriculum (gaps 5..21) is the generator's suggestion for 32 frames
 
 
@@ -85,6 +92,40 @@ def paired_differences(results: dict[Run, dict], dataset: str, cameras: str, row
         if a is not None and b is not None and math.isfinite(a) and math.isfinite(b):
             out.append(a - b)
     return out
+
+
+def primary_family(results: dict[Run, dict], runs: list[Run], rows: list[str]) -> list[dict]:
+    """The ``PRIMARY`` comparisons (each row but ``full``) present in ``runs``: n, the paired mean difference
+    to ``full`` with its 95 % half-width, the paired t-test's p-value and its Holm adjustment (the family)."""
+    family = []
+    for dataset, cameras, metric in PRIMARY:
+        seeds = sorted({r.seed for r in runs if (r.dataset, r.cameras) == (dataset, cameras)})
+        if not seeds:
+            continue
+        for row in rows:
+            if row == "full":
+                continue
+            diff = paired_differences(results, dataset, cameras, row, seeds, metric)
+            mean, half, n = t_interval(diff)
+            p, _ = paired_t_p(diff)
+            family.append({"set": dataset, "cameras": cameras, "metric": metric, "row": row, "n": n,
+                           "diff": mean, "diff_ci": half, "p": p})  # fmt: skip
+    for line, adjusted in zip(family, holm([line["p"] for line in family])):
+        line["p_holm"] = adjusted
+    return family
+
+
+def results_from_csv(path: Path) -> dict[Run, dict]:
+    """Results as ``runs.csv`` records them (one line per finished run)."""
+    with open(path) as f:
+        lines = list(csv.DictReader(f))
+    return {
+        Run(r["set"], r["cameras"], r["row"], int(r["seed"])): {
+            k: (float(r[k]) if r.get(k) not in (None, "") else None)
+            for k in (*METRICS, *SH_METRICS, "fit_seconds")
+        }
+        for r in lines
+    }
 
 
 # ----------------------------------------------------------------------------------------------- data and runs
@@ -233,6 +274,33 @@ def _fmt(mean: float | None, half: float | None, digits: int, signed: bool = Fal
     return text + (f" ± {half:.{digits}f}" if half is not None and math.isfinite(half) else "")
 
 
+def _p(value: float) -> str:
+    if not math.isfinite(value):
+        return "–"
+    return f"{value:.4f}" if value >= 1e-4 else f"{value:.1e}"
+
+
+def primary_markdown(family: list[dict]) -> list[str]:
+    """The primary family's table: named before the figures, Holm-adjusted."""
+    if not family:
+        return []
+    out = ["", "## Primary comparisons (Holm-adjusted)", "",
+           "The primary family, fixed in the code (`PRIMARY`): each row against `full`, posed, on PSNR "
+           "over the highlight pixels of the specular set and on overall PSNR of the diffuse set. Δ: the "
+           "paired per-seed "
+           "difference to `full`, mean ± half-width of its 95 % t-interval; p: two-sided paired t-test; "
+           f"Holm p: adjusted over the family of {sum(math.isfinite(x['p']) for x in family)} comparisons "
+           "(a difference is significant at 5 % for the family where Holm p ≤ 0.05). Every other difference "
+           "in the tables below is exploratory: no correction, no claim.", "",
+           "| set | metric | row | n | Δ (dB) | p | Holm p |",
+           "| --- | --- | --- | ---: | ---: | ---: | ---: |"]  # fmt: skip
+    for x in family:
+        diff = _fmt(x["diff"], x["diff_ci"], 2, signed=True)
+        out.append(f"| {x['set']} | {LABELS[x['metric']]} | `{x['row']}` | {x['n']} | {diff} | {_p(x['p'])} | "
+                   f"{_p(x['p_holm'])} |")  # fmt: skip
+    return out
+
+
 def markdown(lines: list[dict], runs: list[Run], results: dict[Run, dict], settings: Settings) -> str:
     done = [results[r] for r in runs if r in results]
     fit = [d["fit_seconds"] for d in done if d.get("fit_seconds") is not None]
@@ -248,6 +316,7 @@ def markdown(lines: list[dict], runs: list[Run], results: dict[Run, dict], setti
         "Mean ± half-width of the 95 % t-interval over seeds. Δ: the paired per-seed difference to `full` "
         "(same set, cameras and seed), mean ± half-width. PSNR highlight / rest: PSNR on the test-target "
         "pixels whose specular term exceeds 0.05 and on the others (the diffuse set has no highlight pixels).",
+        *primary_markdown(primary_family(results, runs, list(dict.fromkeys(r.row for r in runs)))),
     ]
     for dataset, cameras in groups(runs):
         out += ["", f"## {group_title(dataset, cameras)}", ""]
@@ -338,6 +407,13 @@ def write_report(
         writer.writeheader()
         writer.writerows([{k: ("" if isinstance(v, float) and math.isnan(v) else v) for k, v in line.items()}
                           for line in lines])  # fmt: skip
+    family = primary_family(results, runs, rows)
+    with open(out / "primary.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=["set", "cameras", "metric", "row", "n", "diff", "diff_ci", "p",
+                                               "p_holm"])  # fmt: skip
+        writer.writeheader()
+        writer.writerows([{k: ("" if isinstance(v, float) and math.isnan(v) else v) for k, v in x.items()}
+                          for x in family])  # fmt: skip
     (out / "table.md").write_text(markdown(lines, runs, results, settings))
     plot(lines, runs, out / "ablation.png")
 
@@ -360,6 +436,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--test-scenes", type=int, default=16, help="test scenes per set (default 16)")
     p.add_argument("--data-seed", type=int, default=0, help="seed of the synthetic scenes (default 0)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the report from finished runs")
+    p.add_argument("--from-runs", default=None, metavar="RUNS_CSV",
+                   help="rebuild the report from this runs.csv (e.g. benchmarks/ablation/runs.csv) instead of "
+                   "the runs' folders; implies --report-only")  # fmt: skip
     p.add_argument("--shard", default="0/1", metavar="K/N",
                    help="train only the runs whose place in the plan is K modulo N (default 0/1: all); start N "
                         "processes, 0/N .. N-1/N, to use N cores (one thread each)")  # fmt: skip
@@ -379,6 +458,11 @@ def main(argv: list[str] | None = None) -> None:
                         data_seed=a.data_seed, extra=tuple(a.extra))  # fmt: skip
     work, out = Path(a.work), Path(a.out)
     runs = plan(a.rows, a.seeds, a.free_seeds, a.sets)
+    if a.from_runs is not None:
+        recorded = results_from_csv(Path(a.from_runs))
+        write_report(out, runs, {run: recorded[run] for run in runs if run in recorded}, a.rows, settings)
+        print(f"wrote {out / 'table.md'}, table.csv, primary.csv, runs.csv and ablation.png from {a.from_runs}")
+        return
     results = {run: r for run in runs if (r := result(run, work, settings)) is not None}
     if not a.report_only:
         shards = {s: prepare_data(s, work, settings) for s in a.sets}

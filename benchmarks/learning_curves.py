@@ -7,16 +7,20 @@
         [--data-seeds 0 1 2] [--out outputs/curves] [-- extra `aesplat fit` overrides for every run]
 
 Trains each named run with `aesplat fit` (in this process, one after the other, same config and seed) and
-records, with the ``aesplat.train.curves.LearningCurve`` callback, held-out test PSNR, SSIM, rotation and
-translation-direction errors and the copy-the-context yardsticks at step 0, every ``--every`` steps and at
-the end, against steps and training seconds (evaluation excluded). Writes OUT/<run>/curve.csv per run,
-OUT/curves.png (PSNR and rotation error against steps and against seconds, one line per run, the yardsticks
-as horizontal lines) and OUT/CURVES.md (a table of first and last points). Run it again to resume: finished
+records, with the ``aesplat.train.curves.LearningCurve`` callback, PSNR, SSIM, rotation and
+translation-direction errors and the copy-the-context yardsticks on the validation scenes and on the test
+scenes, side by side, at step 0, every ``--every`` steps and at the end, against steps and training seconds
+(evaluation excluded). Writes OUT/<run>/curve.csv per run, OUT/curves.png (validation PSNR and rotation error
+against steps and against seconds, one line per run, the yardsticks as horizontal lines) and OUT/CURVES.md: a
+table of first and last validation points per run, the run chosen on them (highest validation PSNR at the
+last point; the mean over data seeds where there are several) and that run's test figures, the only test
+figures the table reports (docs/validation.md). Run it again to resume: finished
 runs are skipped, an interrupted one continues from its last checkpoint (OUT/<run>/checkpoints/last.ckpt,
 written at every point) without evaluating its finished points again.
 
 The data: the shards under DATA/shards; when they are missing they are made as `make demo` makes them
-(data_prep/synthetic.py into DATA/src with --scene-args, then data_prep/to_shards.py at --size).
+(data_prep/synthetic.py into DATA/src with 12 validation scenes and --scene-args, then data_prep/to_shards.py
+at --size).
 
 Runs (``--runs``; the levers are the loss and data options that widen the pose signal, each off by default):
 
@@ -82,6 +86,7 @@ def lever_args(steps: int) -> dict[str, list[str]]:
 
 
 SEED_TAG = "@data-seed-"  # a run trained once per --data-seeds value: pose-free@data-seed-1
+DEMO_VAL_SCENES = "12"  # validation scenes of the demo's shards, as scripts/demo.sh makes them
 WARM_START_SCENES = "--seed 1 --scenes 1536 --test-scenes 8"  # disjoint from the demo's scenes (seed 0)
 # The pose-free stage from the warm start, as conf/demo.yaml sets it: its network (the camera head's correlation
 # branch) and a learning rate five times lower than from scratch (at 5e-4 it loses the warm start's rotations).
@@ -126,8 +131,8 @@ def ensure_shards(data: Path, size: int, scene_args: str) -> Path:
     if (shards / "manifest.json").is_file():
         return shards
     python = sys.executable
-    subprocess.run([python, str(ROOT / "data_prep/synthetic.py"), "--out", str(data / "src"),
-                    *shlex.split(scene_args)], check=True)  # fmt: skip
+    subprocess.run([python, str(ROOT / "data_prep/synthetic.py"), "--out", str(data / "src"), "--val-scenes",
+                    DEMO_VAL_SCENES, *shlex.split(scene_args)], check=True)  # fmt: skip
     subprocess.run([python, str(ROOT / "data_prep/to_shards.py"), "--src", str(data / "src"), "--out",
                     str(shards), "--size", str(size)], check=True)  # fmt: skip
     return shards
@@ -163,26 +168,28 @@ def finished(csv_path: Path, steps: int) -> bool:
 def plot_curves(curves: dict[str, list[dict[str, float]]], path: Path, title: str = "") -> None:
     """PSNR and rotation error against steps and against training seconds; yardsticks as horizontal lines."""
     fig, axes = plt.subplots(2, 2, figsize=(12, 8.5), squeeze=False)
+    pre = "val_" if has_validation(curves) else ""  # choices are made on validation figures: plot those
+    split = "validation" if pre else "test"
     for i, (name, rows) in enumerate(curves.items()):
         if not rows:
             continue
         color = f"C{i % 10}"
         for col, x_key in enumerate(("step", "train_seconds")):
             x = [r[x_key] for r in rows]
-            axes[0, col].plot(x, [r["psnr"] for r in rows], "o-", ms=3, color=color, label=name)
-            rot = [r["rot_err_deg"] for r in rows]
+            axes[0, col].plot(x, [r[pre + "psnr"] for r in rows], "o-", ms=3, color=color, label=name)
+            rot = [r[pre + "rot_err_deg"] for r in rows]
             if any(math.isfinite(v) for v in rot):
                 axes[1, col].plot(x, rot, "o-", ms=3, color=color, label=name)
     rows = next((r for r in curves.values() if r), [])
     if rows:
         for col in range(2):
             ax = axes[0, col]
-            ax.axhline(rows[0]["copy_mean_psnr"], color="k", ls="--", lw=1, label="copy: mean of context")
-            ax.axhline(rows[0]["copy_best_psnr"], color="k", ls=":", lw=1, label="copy: better context")
+            ax.axhline(rows[0][pre + "copy_mean_psnr"], color="k", ls="--", lw=1, label="copy: mean of context")
+            ax.axhline(rows[0][pre + "copy_best_psnr"], color="k", ls=":", lw=1, label="copy: better context")
     labels = {"step": "training step", "train_seconds": "training seconds (evaluation excluded)"}
     for col, x_key in enumerate(("step", "train_seconds")):
-        axes[0, col].set_ylabel("test PSNR (dB)")
-        axes[1, col].set_ylabel("test rotation error (°)")
+        axes[0, col].set_ylabel(f"{split} PSNR (dB)")
+        axes[1, col].set_ylabel(f"{split} rotation error (°)")
         for row in range(2):
             axes[row, col].set_xlabel(labels[x_key])
             axes[row, col].grid(True, alpha=0.3)
@@ -196,49 +203,93 @@ def plot_curves(curves: dict[str, list[dict[str, float]]], path: Path, title: st
     plt.close(fig)
 
 
-def summary_table(curves: dict[str, list[dict[str, float]]]) -> list[str]:
-    """Markdown: per run, first and last points (PSNR, rotation and translation errors) and its seconds."""
+def has_validation(curves: dict[str, list[dict[str, float]]]) -> bool:
+    """Whether the curves carry validation figures (shards with a validation split)."""
+    return any(math.isfinite(r.get("val_psnr", math.nan)) for rows in curves.values() for r in rows)
 
-    def f(v: float, pattern: str) -> str:
-        return pattern.format(v) if math.isfinite(v) else "n/a"
 
-    lines = [
-        "| run | steps | training s | s/step | PSNR start → end (dB) | rotation error start → end (°) "
-        "| translation error start → end (°) |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for name, rows in curves.items():
-        if not rows:
-            continue
-        a, b = rows[0], rows[-1]
-        per_step = b["train_seconds"] / b["step"] if b["step"] else math.nan
-        lines.append(
-            f"| {name} | {int(b['step'])} | {b['train_seconds']:.0f} | {f(per_step, '{:.2f}')} | "
-            f"{a['psnr']:.2f} → {b['psnr']:.2f} | "
-            f"{f(a['rot_err_deg'], '{:.2f}')} → {f(b['rot_err_deg'], '{:.2f}')} "
-            f"| {f(a['trans_err_deg'], '{:.1f}')} → {f(b['trans_err_deg'], '{:.1f}')} |"
-        )
+def _fmt(v: float, pattern: str) -> str:
+    return pattern.format(v) if math.isfinite(v) else "n/a"
+
+
+def _run_rows(name: str, rows: list[dict[str, float]], pre: str) -> str:
+    a, b = rows[0], rows[-1]
+    per_step = b["train_seconds"] / b["step"] if b["step"] else math.nan
+    return (
+        f"| {name} | {int(b['step'])} | {b['train_seconds']:.0f} | {_fmt(per_step, '{:.2f}')} | "
+        f"{a[pre + 'psnr']:.2f} → {b[pre + 'psnr']:.2f} | "
+        f"{_fmt(a[pre + 'rot_err_deg'], '{:.2f}')} → {_fmt(b[pre + 'rot_err_deg'], '{:.2f}')} "
+        f"| {_fmt(a[pre + 'trans_err_deg'], '{:.1f}')} → {_fmt(b[pre + 'trans_err_deg'], '{:.1f}')} |"
+    )
+
+
+def seed_groups(curves: dict[str, list[dict[str, float]]]) -> dict[str, list[list[dict[str, float]]]]:
+    """Curves by run: RUN@data-seed-S and plain RUN both under RUN (empty curves left out)."""
     groups: dict[str, list[list[dict[str, float]]]] = {}
     for name, rows in curves.items():
-        run, tag, _ = name.partition(SEED_TAG)
-        if tag and rows:
-            groups.setdefault(run, []).append(rows)
+        if rows:
+            groups.setdefault(name.partition(SEED_TAG)[0], []).append(rows)
+    return groups
+
+
+def choose(curves: dict[str, list[dict[str, float]]]) -> str | None:
+    """The run with the highest validation PSNR at its last point (mean over its data seeds); None without
+    validation figures. Test figures play no part."""
+    scores = {run: sum(rows[-1]["val_psnr"] for rows in seeded) / len(seeded)
+              for run, seeded in seed_groups(curves).items()}  # fmt: skip
+    scores = {run: v for run, v in scores.items() if math.isfinite(v)}
+    return max(scores, key=scores.get) if scores else None
+
+
+def summary_table(curves: dict[str, list[dict[str, float]]]) -> list[str]:
+    """Markdown: per run, first and last points (PSNR, rotation and translation errors) and its seconds. With
+    validation figures, the rows are validation figures, then the run chosen on them and its test figures."""
+    pre = "val_" if has_validation(curves) else ""
+    split = "validation" if pre else "test"
+    lines = [
+        f"| run | steps | training s | s/step | {split} PSNR start → end (dB) | {split} rotation error start → "
+        f"end (°) | {split} translation error start → end (°) |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    lines += [_run_rows(name, rows, pre) for name, rows in curves.items() if rows]
+    groups = seed_groups(curves)
     for run, seeded in groups.items():
-        if len(seeded) < 2:
-            continue
-        steps = max(int(rows[-1]["step"]) for rows in seeded)
-        seconds = t_interval(rows[-1]["train_seconds"] for rows in seeded)[0]
-        columns = (("psnr", "{:.2f}"), ("rot_err_deg", "{:.2f}"), ("trans_err_deg", "{:.1f}"))
-        cells = [f"{spread(seeded, key, 0, p)} → {spread(seeded, key, -1, p)}" for key, p in columns]
-        lines.append(f"| {run}, mean ± 95 % interval over {len(seeded)} data seeds | {steps} | {seconds:.0f} | "
-                     f"{seconds / steps:.2f} | {' | '.join(cells)} |")  # fmt: skip
+        if len(seeded) >= 2:
+            lines.append(_interval_row(run, seeded, pre))
     rows = next((r for r in curves.values() if r), [])
-    if rows:
-        first = rows[0]
-        lines += ["", f"Copy-the-context yardsticks on the same {int(first['num_scenes'])} test scenes: "
-                  f"mean of the context views {first['copy_mean_psnr']:.2f} dB, the better context view "
-                  f"{first['copy_best_psnr']:.2f} dB."]  # fmt: skip
+    if not rows:
+        return lines
+    first = rows[0]
+    count = int(first[pre + "num_scenes"])
+    lines += ["", f"Copy-the-context yardsticks on the same {count} {split} scenes: mean of the context views "
+              f"{first[pre + 'copy_mean_psnr']:.2f} dB, the better context view "
+              f"{first[pre + 'copy_best_psnr']:.2f} dB."]  # fmt: skip
+    chosen = choose(curves)
+    if chosen is None:
+        return lines
+    seeded = groups[chosen]
+    lines += ["", f"Chosen on the validation scenes (highest validation PSNR at the last point): **{chosen}**. "
+              "Its test figures (the only test figures reported here):", "",
+              "| run | steps | training s | s/step | test PSNR start → end (dB) | test rotation error start → "
+              "end (°) | test translation error start → end (°) |",
+              "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
+    lines += [_run_rows(name, rows, "") for name, rows in curves.items()
+              if rows and name.partition(SEED_TAG)[0] == chosen]  # fmt: skip
+    if len(seeded) >= 2:
+        lines.append(_interval_row(chosen, seeded, ""))
+    lines += ["", f"Copy-the-context yardsticks on the {int(first['num_scenes'])} test scenes: mean of the "
+              f"context views {first['copy_mean_psnr']:.2f} dB, the better context view "
+              f"{first['copy_best_psnr']:.2f} dB."]  # fmt: skip
     return lines
+
+
+def _interval_row(run: str, seeded: list[list[dict[str, float]]], pre: str) -> str:
+    steps = max(int(rows[-1]["step"]) for rows in seeded)
+    seconds = t_interval(rows[-1]["train_seconds"] for rows in seeded)[0]
+    columns = ((pre + "psnr", "{:.2f}"), (pre + "rot_err_deg", "{:.2f}"), (pre + "trans_err_deg", "{:.1f}"))
+    cells = [f"{spread(seeded, key, 0, p)} → {spread(seeded, key, -1, p)}" for key, p in columns]
+    return (f"| {run}, mean ± 95 % interval over {len(seeded)} data seeds | {steps} | {seconds:.0f} | "
+            f"{seconds / steps:.2f} | {' | '.join(cells)} |")  # fmt: skip
 
 
 def spread(seeded: list[list[dict[str, float]]], key: str, at: int, pattern: str) -> str:

@@ -4,10 +4,15 @@ ScanNet++, your own COLMAP run) into WebDataset shards.
 
     python data_prep/to_shards.py --src DIR --out OUT [--size 256 --eval-index FILE --workers N]
     python data_prep/to_shards.py --format nerfstudio|colmap --src DIR --out OUT [--size 256 --split test]
+    python data_prep/to_shards.py --src DIR --out OUT --val-scenes 200   # RealEstate10K, ACID: no validation/
 
-SRC holds train/ and test/ folders of *.torch chunks (each with index.json). Writes OUT/train/*.tar,
-OUT/test/*.tar and OUT/manifest.json (counts, skipped scenes with reasons, SHA-256 per shard). Rerunning the
-same command resumes: completed shards whose checksum matches are kept.
+SRC holds train/ and test/ folders of *.torch chunks (each with index.json), and a validation/ folder where the
+data set has one (the synthetic set). Writes OUT/{train,validation,test}/*.tar and OUT/manifest.json (counts,
+skipped scenes with reasons, SHA-256 per shard). A source without validation/ gets one with --val-scenes N: N
+training scenes, chosen deterministically from their keys and --seed, become the validation split (the manifest
+lists them) and leave the training shards. Training validates, and selects its "best" checkpoint, on the
+validation split, so no choice sees a test scene (docs/validation.md). Rerunning the same command resumes:
+completed shards whose checksum matches are kept.
 
 With --format nerfstudio or colmap, SRC holds one folder per scene (a transforms.json or a COLMAP sparse model
 with its images); every scene goes to --split (test by default) as one shard, and scenes that cannot be
@@ -77,6 +82,18 @@ def convert(argv: list[str] | None = None) -> None:
         default=None,
         help="evaluation index JSON for test/ (default SRC/evaluation_index.json if present)",
     )
+    p.add_argument(
+        "--val-index",
+        default=None,
+        help="evaluation index JSON for validation/ (default SRC/validation_index.json if present)",
+    )
+    p.add_argument(
+        "--val-scenes",
+        type=int,
+        default=0,
+        help="hold out this many training scenes as the validation split (sources without validation/; "
+        "default 0)",
+    )
     p.add_argument("--workers", type=int, default=1, help="processes (default 1)")
     p.add_argument(
         "--min-gap",
@@ -128,15 +145,17 @@ def convert(argv: list[str] | None = None) -> None:
         sys.exit(1 if bad else 0)
     if a.src is None:
         p.error("--src is required (unless --verify)")
+    if a.val_scenes < 0:
+        p.error(f"--val-scenes must be >= 0, got {a.val_scenes}")
     if a.format != "chunks":
+        if a.val_scenes:
+            p.error("--val-scenes holds out training scenes of a chunk source; captures go whole to --split")
         convert_capture_folders(a)
         return
-    manifest = convert_dataset(
-        a.src, a.out, size=a.size, eval_index=a.eval_index, workers=a.workers, min_gap=a.min_gap,
-        max_gap=a.max_gap, samples_per_scene=a.samples_per_scene, train_targets=a.train_targets,
-        max_fov_deg=a.max_fov, min_baseline=a.min_baseline, expect_shape=a.expect_shape,
-        jpeg_quality=a.jpeg_quality, seed=a.seed, dataset=a.dataset, specular_threshold=a.specular_threshold,
-    )  # fmt: skip
+    try:
+        manifest = convert_chunks(a)
+    except ValueError as e:  # a choice of flags that does not fit the source: one line, not a traceback
+        sys.exit(f"to_shards.py: {e}")
     summary = {s: {k: v for k, v in e.items() if k != "shards"} for s, e in manifest["splits"].items()}
     print(json.dumps(summary, indent=1))
 
@@ -161,6 +180,16 @@ def convert_capture_folders(a: argparse.Namespace) -> None:
         s: {k: v for k, v in e.items() if k not in ("shards", "refused")} for s, e in manifest["splits"].items()
     }
     print(json.dumps(summary, indent=1))
+
+
+def convert_chunks(a: argparse.Namespace) -> dict:
+    return convert_dataset(
+        a.src, a.out, size=a.size, eval_index=a.eval_index, workers=a.workers, min_gap=a.min_gap,
+        max_gap=a.max_gap, samples_per_scene=a.samples_per_scene, train_targets=a.train_targets,
+        max_fov_deg=a.max_fov, min_baseline=a.min_baseline, expect_shape=a.expect_shape,
+        jpeg_quality=a.jpeg_quality, seed=a.seed, dataset=a.dataset, specular_threshold=a.specular_threshold,
+        val_scenes=a.val_scenes, val_index=a.val_index,
+    )  # fmt: skip
 
 
 if __name__ == "__main__":

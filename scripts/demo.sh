@@ -13,6 +13,7 @@ set -euo pipefail
 
 : "${PY:?}" "${AESPLAT:?}" "${DEMO_CONFIG:?}" "${DEMO_DIR:?}" "${DEMO_SIZE:?}"
 DEMO_DIAGNOSE=${DEMO_DIAGNOSE:-1}
+DEMO_VAL_SCENES=${DEMO_VAL_SCENES:-12}
 read -r -a scene_args <<<"${DEMO_SCENE_ARGS:-}"
 read -r -a fit_args <<<"${DEMO_FIT_ARGS:-}"
 run=$DEMO_DIR/run
@@ -45,7 +46,10 @@ rm -rf "$run" "$DEMO_DIR/initial" "$DEMO_DIR/random" "$DEMO_DIR/bench" "$posed"
 mkdir -p "$DEMO_DIR"
 echo "stage,seconds" >"$times"
 
-stage "synthetic scenes" "$PY" data_prep/synthetic.py --out "$DEMO_DIR/src" "${scene_args[@]}"
+# 12 validation scenes (a seed stream of their own: the train and test scenes are the same with or without
+# them): `aesplat fit` validates on them, never on the test scenes (docs/validation.md).
+stage "synthetic scenes" "$PY" data_prep/synthetic.py --out "$DEMO_DIR/src" --val-scenes "$DEMO_VAL_SCENES" \
+    "${scene_args[@]}"
 stage "shards" "$PY" data_prep/to_shards.py --src "$DEMO_DIR/src" --out "$DEMO_DIR/shards" --size "$DEMO_SIZE"
 
 diag_pid=

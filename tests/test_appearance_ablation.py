@@ -111,3 +111,41 @@ def test_full_tiny_grid_both_sets_and_pose_free(tmp_path):
     assert table[("specular", "predicted", "full")]["psnr_ci"] == ""  # one seed: no interval
     text = (tmp_path / "out" / "table.md").read_text()
     assert "## diffuse set, posed" in text and "pose-free" in text
+
+
+def test_primary_family_holm_adjusts_the_named_comparisons_only(tmp_path):
+    from aesplat.stats import paired_t_p
+
+    runner = _runner()
+    run = runner.Run
+    full = {0: 20.0, 1: 21.0, 2: 22.0}
+    worse = {0: 18.0, 1: 18.5, 2: 19.6}  # highlight PSNR: clearly below `full` in every seed
+    same = {0: 20.1, 1: 20.8, 2: 22.1}
+    results = {}
+    for seed in range(3):
+        results[run("specular", "dataset", "full", seed)] = {"psnr": 1.0, "psnr_highlight": full[seed]}
+        results[run("specular", "dataset", "baseline", seed)] = {"psnr": 9.0, "psnr_highlight": worse[seed]}
+        results[run("diffuse", "dataset", "full", seed)] = {"psnr": full[seed]}
+        results[run("diffuse", "dataset", "baseline", seed)] = {"psnr": same[seed]}
+    runs = list(results)
+    family = runner.primary_family(results, runs, ["full", "baseline"])
+    assert [(x["set"], x["metric"], x["row"]) for x in family] == [
+        ("specular", "psnr_highlight", "baseline"),
+        ("diffuse", "psnr", "baseline"),
+    ]  # overall PSNR of the specular set (9 vs 1 dB) is not in the family
+    p_hl = paired_t_p([worse[s] - full[s] for s in range(3)])[0]
+    p_diffuse = paired_t_p([same[s] - full[s] for s in range(3)])[0]
+    assert family[0]["p"] == p_hl and family[1]["p"] == p_diffuse and p_hl < p_diffuse
+    assert family[0]["p_holm"] == 2 * p_hl and family[1]["p_holm"] == max(2 * p_hl, p_diffuse)
+    assert family[0]["n"] == 3 and family[0]["diff"] < 0
+
+    # The report from a runs.csv alone: the same family in primary.csv and table.md.
+    out = tmp_path / "out"
+    runner.write_report(out, runs, results, ["full", "baseline"], runner.Settings("c", 28, 2, 2, 1, 0, ()))
+    rebuilt = tmp_path / "rebuilt"
+    runner.main(["--from-runs", str(out / "runs.csv"), "--out", str(rebuilt), "--rows", "full", "baseline",
+                 "--seeds", "3", "--free-seeds", "0"])  # fmt: skip
+    with open(rebuilt / "primary.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [float(r["p_holm"]) for r in rows] == pytest.approx([x["p_holm"] for x in family])
+    assert "## Primary comparisons (Holm-adjusted)" in (rebuilt / "table.md").read_text()

@@ -85,3 +85,23 @@ def test_the_warm_start_section_says_how_the_weights_file_was_made(tmp_path):
     text = "\n".join(report.warm_start_section(random_init, trained, {}, str(weights)))
     assert "how it was made: make warmstart (x), 8,000 training steps." in text
     assert "how it was made" not in "\n".join(report.warm_start_section(random_init, trained, {}, "missing.pt"))
+
+
+def test_the_selection_section_shows_validation_beside_test_or_warns_without_a_validation_split(tmp_path):
+    report = _report_module()
+    trained = _summary(tmp_path / "t", 19.98, 3.25, 7.4)
+    metrics = [{"step": 299.0, "val/psnr": 19.1, "val/rot_err_deg": 2.5, "val/trans_err_deg": 7.0},
+               {"step": 599.0, "val/psnr": 19.41, "val/rot_err_deg": 2.37, "val/trans_err_deg": 7.26},
+               {"step": 599.0, "train/loss": 0.1}]  # fmt: skip
+    text = "\n".join(report.selection_section(metrics, trained, validated=True))
+    assert "chosen on *validation* scenes" in text
+    assert "| validation (step 599) | 19.41 | 2.37 | 7.26 |" in text
+    assert "| test (trained) | 19.98 | 3.25 | 7.40 |" in text
+    warned = "\n".join(report.selection_section(metrics, trained, validated=False))
+    assert "no validation split" in warned and "| validation" not in warned
+    shards = tmp_path / "shards"
+    shards.mkdir()
+    (shards / "manifest.json").write_text('{"splits": {"train": {}, "test": {}}}')
+    assert not report.has_validation_split(str(shards))
+    (shards / "manifest.json").write_text('{"splits": {"train": {}, "validation": {}, "test": {}}}')
+    assert report.has_validation_split(str(shards)) and not report.has_validation_split(None)

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from aesplat.stats import t_interval, t_quantile_95
+from aesplat.stats import T95, holm, paired_t_p, t_interval, t_quantile_95, t_two_sided_p
 
 
 def test_t_interval_by_hand():
@@ -19,3 +19,26 @@ def test_t_interval_by_hand():
     assert t_interval([])[2] == 0
     with pytest.raises(ValueError, match="at least 2 values"):
         t_quantile_95(0)
+
+
+def test_t_p_value_is_five_percent_at_the_tabulated_quantiles():
+    for df, quantile in enumerate(T95, start=1):  # the table's t(0.975, df) values, rounded to 3 decimals
+        assert t_two_sided_p(quantile, df) == pytest.approx(0.05, abs=2e-4), df
+        assert t_two_sided_p(-quantile, df) == t_two_sided_p(quantile, df)
+    assert t_two_sided_p(0.0, 4) == 1.0
+    assert t_two_sided_p(1.0, 1) == pytest.approx(0.5)  # Cauchy: P(|T| > 1) = 1/2
+    assert t_two_sided_p(2.0, 2) == pytest.approx(1 - 2 / math.sqrt(6))  # df 2: P(|T| <= t) = t/sqrt(2+t^2)
+    with pytest.raises(ValueError, match="df >= 1"):
+        t_two_sided_p(1.0, 0)
+
+
+def test_paired_t_p_and_holm_by_hand():
+    p, n = paired_t_p([1.0, 2.0, 3.0, None, float("nan")])
+    assert n == 3 and p == pytest.approx(t_two_sided_p(2.0 / (1.0 / math.sqrt(3)), 2))
+    assert math.isnan(paired_t_p([1.0])[0])
+    assert paired_t_p([0.5, 0.5]) == (0.0, 2) and paired_t_p([0.0, 0.0]) == (1.0, 2)
+    # Holm: sorted 0.01, 0.02, 0.04 -> 3*0.01, max(0.03, 2*0.02), max(0.04, 1*0.04); NaN is left out.
+    adjusted = holm([0.04, 0.01, float("nan"), 0.02])
+    assert adjusted == pytest.approx([0.04, 0.03, float("nan"), 0.04], nan_ok=True)
+    assert holm([0.5, 0.6]) == [1.0, 1.0] and holm([]) == []
+    assert holm([0.03, 0.001]) == pytest.approx([0.03, 0.002])  # the running maximum keeps the order

@@ -1,4 +1,5 @@
-"""Small-sample statistics for the experiments' tables: the mean and its 95 % Student-t interval over seeds."""
+"""Small-sample statistics for the experiments' tables: the mean and its 95 % Student-t interval over seeds,
+the paired t-test's p-value and Holm's adjustment of a family of p-values."""
 
 from __future__ import annotations
 
@@ -29,3 +30,56 @@ def t_interval(values: Iterable[float | None]) -> tuple[float, float, int]:
         return mean, math.nan, n
     sd = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1))
     return mean, t_quantile_95(n - 1) * sd / math.sqrt(n), n
+
+
+def t_two_sided_p(t: float, df: int) -> float:
+    """Two-sided p-value of Student's t statistic ``t`` with ``df`` >= 1 (integer) degrees of freedom.
+
+    Exact closed form for integer df (Abramowitz & Stegun 26.7.3-4): with theta = atan(|t| / sqrt(df)),
+    P(|T| <= |t|) is a finite series in sin(theta) and cos(theta)^2.
+    """
+    if df < 1:
+        raise ValueError(f"a t-test needs df >= 1, got df={df}")
+    if not math.isfinite(t):
+        return 0.0 if math.isinf(t) else math.nan
+    theta = math.atan(abs(t) / math.sqrt(df))
+    s, c2 = math.sin(theta), math.cos(theta) ** 2
+    if df % 2 == 1:  # odd: 2/pi * (theta + sin cos * [1 + 2/3 c^2 + 2*4/(3*5) c^4 + ... up to c^(df-3)])
+        term, series = 1.0, 1.0 if df > 1 else 0.0
+        for k in range(1, (df - 1) // 2):
+            term *= c2 * (2 * k) / (2 * k + 1)
+            series += term
+        inside = 2.0 / math.pi * (theta + s * math.cos(theta) * series)
+    else:  # even: sin * [1 + 1/2 c^2 + 1*3/(2*4) c^4 + ... up to c^(df-2)]
+        term, series = 1.0, 1.0
+        for k in range(1, df // 2):
+            term *= c2 * (2 * k - 1) / (2 * k)
+            series += term
+        inside = s * series
+    return min(1.0, max(0.0, 1.0 - inside))
+
+
+def paired_t_p(differences: Iterable[float | None]) -> tuple[float, int]:
+    """(two-sided p-value of the paired t-test that the mean difference is 0, n) over the finite values; NaN
+    below 2 values, 0 when every difference is the same non-zero value."""
+    finite = [v for v in differences if v is not None and math.isfinite(v)]
+    n = len(finite)
+    if n < 2:
+        return math.nan, n
+    mean = sum(finite) / n
+    sd = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1))
+    if sd == 0.0:
+        return (1.0 if mean == 0.0 else 0.0), n
+    return t_two_sided_p(mean / (sd / math.sqrt(n)), n - 1), n
+
+
+def holm(p_values: list[float]) -> list[float]:
+    """Holm's step-down adjustment of a family of p-values (same order as given; NaN stays NaN and does not
+    count towards the family's size). Rejecting where the adjusted value is <= alpha keeps the family-wise
+    error rate at alpha."""
+    order = sorted((i for i, p in enumerate(p_values) if math.isfinite(p)), key=lambda i: p_values[i])
+    m, out, running = len(order), [math.nan] * len(p_values), 0.0
+    for rank, i in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * p_values[i]))
+        out[i] = running
+    return out

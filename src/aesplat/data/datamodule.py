@@ -30,10 +30,14 @@ warnings.filterwarnings("ignore", message=r".*Your `IterableDataset` has `__len_
 
 
 class DataModule(L.LightningDataModule):
-    """Context/target batches streamed from ``root/{train,test}/*.tar`` (made by ``data_prep/to_shards.py``).
+    """Context/target batches streamed from ``root/{train,validation,test}/*.tar`` (``data_prep/to_shards.py``).
+
+    Validation (and with it the "best" checkpoint) uses the ``validation`` split; the ``test`` split only
+    when the shards have no validation split, with a warning that checkpoint selection then sees the test
+    scenes (``to_shards.py --val-scenes N`` makes one; see docs/validation.md).
 
     Args:
-        root: shard folder holding ``train/`` and ``test/`` (and ``manifest.json``).
+        root: shard folder holding ``train/``, ``validation/`` and ``test/`` (and ``manifest.json``).
         image_size: square side fed to the model (shard images of another size are resized; use a multiple
             of 14 for the ViT patch size).
         batch_size / eval_batch_size: samples per training / evaluation batch (per rank).
@@ -140,6 +144,26 @@ class DataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------------------------------- loaders
 
+    def has_split(self, split: str) -> bool:
+        """Whether the shards hold ``split``: the manifest lists it, or (without one) its folder has tars."""
+        path = self.root / "manifest.json"
+        if path.exists():
+            return split in json.loads(path.read_text()).get("splits", {})
+        return any((self.root / split).glob("*.tar"))
+
+    def validation_split(self) -> str:
+        """The split validation runs on: ``validation`` when the shards have one, else ``test`` (warned)."""
+        if self.has_split("validation"):
+            return "validation"
+        if not getattr(self, "_warned_no_validation", False):
+            self._warned_no_validation = True
+            log.warning(
+                "%s has no validation split: validating on the test split, so checkpoint selection sees the "
+                "test scenes; make one with `data_prep/to_shards.py --val-scenes N` (docs/validation.md)",
+                self.root,
+            )
+        return "test"
+
     def shards(self, split: str) -> list[str]:
         """Sorted shard paths of ``root/<split>`` (see :func:`find_shards`)."""
         found = find_shards(self.root, split)
@@ -184,8 +208,10 @@ class DataModule(L.LightningDataModule):
                            seed=self.seed, shuffle_buffer=self.shuffle_buffer)  # fmt: skip
 
     def eval_dataset(self, split: str = "test") -> EvalStream:
+        """The evaluation stream of ``test``, or of ``val``: the validation split (``validation_split``)."""
         counters = self._counters["test" if split == "test" else "val"]
-        return EvalStream(self.shards("test"), self._config(False), self.rank, self.world_size, counters)
+        folder = "test" if split == "test" else self.validation_split()
+        return EvalStream(self.shards(folder), self._config(False), self.rank, self.world_size, counters)
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.train_dataset(), on_epoch_start=self._sync_epoch_start)

@@ -449,12 +449,21 @@ def scene_to_chunk_entry(scene: Scene, rendered: RenderedFrames, jpeg_quality: i
     }
 
 
-def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int, width: int, seed: int,
+# Where each split's scene seeds start (scene i of split S has seed ``seed * 10_000_019 + offset + i``) and
+# the seed of its evaluation-index draw: disjoint streams, so adding validation scenes changes no train or
+# test scene, and no test context/target draw.
+SPLIT_SEEDS = {"train": (0, None), "test": (1_000_000, 7_919), "validation": (2_000_000, 7_927)}
+
+
+def _write_splits(out: Path, counts: dict[str, int], frames: int, height: int, width: int, seed: int,
                   scenes_per_chunk: int, scene_options: dict, jpeg_quality: int, supersample: int,
-                  eval_index: dict, bar) -> None:  # fmt: skip
+                  eval_index: dict[str, dict], bar) -> None:  # fmt: skip
+    """Write each split of ``counts`` (train, test, validation) into ``out/<split>``; the held-out splits'
+    evaluation entries (two context views, three targets between them) go into ``eval_index[split]``."""
     lo, hi = recommended_gaps(frames)
-    eval_rng = np.random.default_rng(seed + 7_919)
-    for split, count, offset in (("train", scenes, 0), ("test", n_test, 1_000_000)):
+    for split, count in counts.items():
+        offset, eval_seed = SPLIT_SEEDS[split]
+        eval_rng = None if eval_seed is None else np.random.default_rng(seed + eval_seed)
         split_dir = out / split
         split_dir.mkdir(parents=True, exist_ok=True)
         index: dict[str, str] = {}
@@ -466,13 +475,14 @@ def _write_splits(out: Path, scenes: int, n_test: int, frames: int, height: int,
                                      **scene_options)  # fmt: skip
                 rendered = render_scene(scene, height, width, supersample=supersample)
                 chunk.append(scene_to_chunk_entry(scene, rendered, jpeg_quality))
-                if split == "test":
+                if eval_rng is not None:
                     gap = int(eval_rng.integers(max(lo, 4), max(hi, 4) + 1))  # room for three targets
                     c0 = int(eval_rng.integers(0, frames - gap))
                     targets = sorted(eval_rng.choice(np.arange(c0 + 1, c0 + gap), size=3, replace=False))
                     overlap = view_overlap(rendered.depth, scene.extrinsics, scene.intrinsics, c0, c0 + gap)
-                    eval_index[scene.key] = {"context": [c0, c0 + gap], "target": [int(t) for t in targets],
-                                             "overlap": round(overlap, 4)}  # fmt: skip
+                    eval_index.setdefault(split, {})[scene.key] = {
+                        "context": [c0, c0 + gap], "target": [int(t) for t in targets],
+                        "overlap": round(overlap, 4)}  # fmt: skip
                 bar.update()
             name = f"{start // scenes_per_chunk:06d}.torch"
             write_chunk(chunk, split_dir / name)
@@ -488,6 +498,7 @@ def generate_dataset(
     width: int = 128,
     seed: int = 0,
     test_scenes: int | None = None,
+    val_scenes: int | None = None,
     scenes_per_chunk: int = 4,
     effect_probs: dict[str, float] | None = None,
     jpeg_quality: int = 95,
@@ -499,11 +510,15 @@ def generate_dataset(
     preset: str | None = None,
     progress: bool = False,
 ) -> dict:
-    """Write a synthetic data set in the chunk format: ``out/{train,test}/*.torch`` + ``index.json``,
-    ``out/evaluation_index.json`` (two context views, three targets between them, overlap from depth) and
-    ``out/dataset.json`` (sizes, the recommended context-gap range and depth range for model.net.near / far).
+    """Write a synthetic data set in the chunk format: ``out/{train,validation,test}/*.torch`` + ``index.json``,
+    ``out/evaluation_index.json`` for the test scenes and ``out/validation_index.json`` for the validation
+    scenes (two context views, three targets between them, overlap from depth), and ``out/dataset.json``
+    (sizes, the recommended context-gap range and depth range for model.net.near / far).
 
-    ``scenes`` is the number of training scenes; ``test_scenes`` defaults to half of it (at least 1).
+    ``scenes`` is the number of training scenes; ``test_scenes`` defaults to half of it (at least 1),
+    ``val_scenes`` to a third of the test scenes (0: no validation split). The three splits come from disjoint
+    seed streams: the train and test scenes (and the test evaluation index) are the same whatever
+    ``val_scenes`` is, and no validation scene is a train or test scene.
     ``supersample`` s > 1 anti-aliases the images with s x s rays per pixel (about s^2 times slower).
     ``effects`` declares the same effects in every scene (else each is drawn with ``effect_probs``);
     ``glossy_fraction`` is the share of glossy surfaces; ``preset`` (a key of ``PRESETS``: ``specular`` or
@@ -524,21 +539,27 @@ def generate_dataset(
         raise ValueError(f"--frames must be at least 5 (context pair with three targets between), got {frames}")
     out = Path(out)
     n_test = max(1, (scenes + 1) // 2) if test_scenes is None else test_scenes
-    eval_index: dict[str, dict | None] = {}
+    n_val = n_test // 3 if val_scenes is None else val_scenes
+    if n_val < 0:
+        raise ValueError(f"val_scenes must be >= 0, got {n_val}")
+    counts = {"train": scenes, "test": n_test, **({"validation": n_val} if n_val else {})}
+    eval_index: dict[str, dict] = {}
     from tqdm import tqdm
 
-    bar = tqdm(total=scenes + n_test, desc="synthetic scenes", disable=not progress)
+    bar = tqdm(total=sum(counts.values()), desc="synthetic scenes", disable=not progress)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # small element-wise kernels: extra threads only spin (10x slower on a busy CPU)
     try:
         scene_options = {"effect_probs": effect_probs, "texture_scale": texture_scale, "turn_scale": turn_scale,
                          "effects": effects, "glossy_fraction": glossy_fraction}  # fmt: skip
-        _write_splits(out, scenes, n_test, frames, height, width, seed, scenes_per_chunk, scene_options,
-                      jpeg_quality, supersample, eval_index, bar)  # fmt: skip
+        _write_splits(out, counts, frames, height, width, seed, scenes_per_chunk, scene_options, jpeg_quality,
+                      supersample, eval_index, bar)  # fmt: skip
     finally:
         torch.set_num_threads(threads)
         bar.close()
-    (out / "evaluation_index.json").write_text(json.dumps(eval_index, indent=1, sort_keys=True))
+    for split, name in (("test", "evaluation_index.json"), ("validation", "validation_index.json")):
+        if counts.get(split):
+            (out / name).write_text(json.dumps(eval_index.get(split, {}), indent=1, sort_keys=True))
     lo, hi = recommended_gaps(frames)
     info = {
         "dataset": "synthetic",
@@ -554,6 +575,7 @@ def generate_dataset(
         "glossy_fraction": glossy_fraction,
         "train_scenes": scenes,
         "test_scenes": n_test,
+        "validation_scenes": n_val,
         "gap_range": [lo, hi],
         "near": 0.1,
         "far": 20.0,

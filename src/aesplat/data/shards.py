@@ -255,7 +255,9 @@ class _Job:
     chunk: str
     shard: str
     cfg: ConvertConfig
-    eval_index: dict[str, Any] | None  # test split only; None = sample like training but deterministically
+    eval_index: dict[str, Any] | None  # held-out splits only; None = sample like training but deterministically
+    held_out: frozenset[str] = frozenset()  # train split: scenes kept for validation (left out here)
+    only: frozenset[str] | None = None  # validation held out of train: convert these scenes of the chunk only
 
 
 def _scene_samples(scene: dict[str, Any], key: str, job: _Job, skips: Counter[str]) -> list[tuple]:
@@ -293,6 +295,9 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
         scenes_seen += 1
         reason = validate_scene(scene, job.cfg) if isinstance(scene, dict) else "missing_field"
         key = str(scene.get("key", "")) if isinstance(scene, dict) else ""
+        if key in job.held_out or (job.only is not None and key not in job.only):
+            scenes_seen -= 1  # the other split's scene: neither seen nor skipped here
+            continue
         if reason is None and job.eval_index is None and len(scene["images"]) <= job.cfg.min_gap:
             reason = "shorter_than_min_gap"
         if reason is None and job.eval_index is not None:
@@ -306,7 +311,7 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
             skipped.append((key or f"#{scenes_seen - 1}", reason))
             continue
         try:
-            made = [(name, make_sample(scene, ctx, tgt, ov, job.cfg, highlights=job.split == "test"))
+            made = [(name, make_sample(scene, ctx, tgt, ov, job.cfg, highlights=job.split != "train"))
                     for name, ctx, tgt, ov in _scene_samples(scene, key, job, skips)]  # fmt: skip
         except Exception:  # noqa: BLE001 - a broken frame skips its scene, never the run
             skips["corrupt_image"] += 1
@@ -330,6 +335,7 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
         "masked_target_pixels": masked,
         "config": asdict(job.cfg),
         "evaluation_index_sha256": _index_digest(job.eval_index),
+        "held_out_sha256": _keys_digest(job),
     }
     if not samples:
         shard.unlink(missing_ok=True)  # a shard of an earlier conversion of this chunk is stale now
@@ -371,6 +377,40 @@ def _index_digest(index: dict[str, Any] | None) -> str | None:
     return None if index is None else hashlib.sha256(json.dumps(index, sort_keys=True).encode()).hexdigest()
 
 
+def _keys_digest(job: _Job) -> str | None:
+    """Digest of the scenes a job leaves out or keeps (None when it converts the whole chunk)."""
+    if not job.held_out and job.only is None:
+        return None
+    text = json.dumps([sorted(job.held_out), None if job.only is None else sorted(job.only)])
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def held_out_keys(keys: list[str], count: int, seed: int) -> list[str]:
+    """The ``count`` training scenes held out for validation: the keys ranked by a hash of the conversion
+    seed and the key, so the choice depends on neither the chunk order nor the number of workers. Sorted."""
+    if not 0 <= count < len(keys):
+        raise ValueError(
+            f"--val-scenes {count}: need 0 <= N < the {len(keys)} training scenes (leave some to train on)"
+        )
+    rank = sorted(keys, key=lambda k: hashlib.sha256(f"{seed}/validation/{k}".encode()).hexdigest())
+    return sorted(rank[:count])
+
+
+def _chunk_keys(split_dir: Path) -> dict[str, str]:
+    """Scene key -> chunk file name of a split: its ``index.json``, else read from every chunk."""
+    index_file = split_dir / "index.json"
+    if index_file.exists():
+        return json.loads(index_file.read_text())
+    out = {}
+    for chunk in list_chunks(split_dir):
+        try:
+            scenes = load_chunk(chunk)
+        except ValueError:
+            continue  # the train job reports it as a corrupt chunk
+        out.update({str(s["key"]): chunk.name for s in scenes if isinstance(s, dict) and "key" in s})
+    return out
+
+
 def _done(shard: Path, job: _Job) -> dict[str, Any] | None:
     """The sidecar record if ``shard`` was completed with the same options and evaluation index and its
     checksum still matches."""
@@ -383,6 +423,7 @@ def _done(shard: Path, job: _Job) -> dict[str, Any] | None:
         return None
     same_options = record.get("config") == json.loads(json.dumps(asdict(job.cfg)))
     same_index = record.get("evaluation_index_sha256") == _index_digest(job.eval_index)
+    same_index = same_index and record.get("held_out_sha256") == _keys_digest(job)
     if not (same_options and same_index) or record.get("sha256") != sha256(shard):
         return None
     return record
@@ -406,11 +447,18 @@ def convert_dataset(
     dataset: str | None = None,
     specular_threshold: float = 0.05,
     progress: bool = True,
+    val_scenes: int = 0,
+    val_index: str | Path | None = None,
 ) -> dict[str, Any]:
-    """Convert ``src/{train,test}`` chunk folders into ``out/{train,test}/*.tar`` and ``out/manifest.json``.
+    """Convert ``src/{train,validation,test}`` chunk folders into ``out/<split>/*.tar`` and
+    ``out/manifest.json``.
 
     eval_index: the evaluation index JSON for the test split (default ``src/evaluation_index.json`` if it
     exists; without one the test split is sampled like training, deterministically, one sample per scene).
+    val_index: the same for the validation split (default ``src/validation_index.json``).
+    val_scenes: for a source without a validation split (RealEstate10K, ACID), hold this many training scenes
+    out as the validation split (``held_out_keys``: deterministic); the manifest lists them. The remaining
+    training scenes' shards are converted as before, without them.
     min_gap / max_gap default to ``src/dataset.json``'s ``gap_range`` if present, else the paper's 25 / 90.
     Test samples of scenes that carry their specular magnitude get highlight masks (``specular_threshold``);
     the manifest's test entry then states their ``highlight_share`` of target pixels.
@@ -418,9 +466,19 @@ def convert_dataset(
     Returns the manifest.
     """
     src, out = Path(src), Path(out)
-    splits = [s for s in ("train", "test") if (src / s).is_dir()]
+    splits = [s for s in ("train", "validation", "test") if (src / s).is_dir()]
     if not splits:
         raise MissingFileError(f"{src} holds no train/ or test/ folder of *.torch chunks (pixelSplat layout)")
+    held: list[str] = []
+    if val_scenes:
+        if "validation" in splits:
+            raise ValueError(f"{src} already has a validation/ split; drop --val-scenes (it holds out training "
+                             "scenes only for sources without one)")  # fmt: skip
+        if "train" not in splits:
+            raise ValueError(f"--val-scenes holds out training scenes, but {src} has no train/ folder")
+        keys = _chunk_keys(src / "train")
+        held = held_out_keys(sorted(keys), val_scenes, seed)
+        splits.insert(1, "validation")
     info = json.loads((src / "dataset.json").read_text()) if (src / "dataset.json").exists() else {}
     gaps = info.get("gap_range", [25, 90])
     base = ConvertConfig(
@@ -440,19 +498,30 @@ def convert_dataset(
     if eval_index is None and (src / "evaluation_index.json").exists():
         eval_index = src / "evaluation_index.json"
     index = json.loads(Path(eval_index).read_text()) if eval_index is not None else None
+    if val_index is None and (src / "validation_index.json").exists() and "validation" in splits and not held:
+        val_index = src / "validation_index.json"
+    vindex = json.loads(Path(val_index).read_text()) if val_index is not None else None
+    indexes = {"train": None, "validation": vindex, "test": index}
+    held_set = frozenset(held)
+    held_chunks = {keys[k] for k in held}
 
     jobs, records = [], []
     for split in splits:
         (out / split).mkdir(parents=True, exist_ok=True)
-        for chunk in list_chunks(src / split):
+        from_train = split == "validation" and bool(held)
+        chunks = list_chunks(src / ("train" if from_train else split))
+        for chunk in chunks:
+            if from_train and chunk.name not in held_chunks:
+                continue
             shard = out / split / f"{split}-{chunk.stem}.tar"
-            ev = index if split == "test" else None
+            ev = indexes[split]
             cfg = (
                 ConvertConfig(**{**asdict(base), "samples_per_scene": 1})
-                if split == "test" and ev is None
+                if split != "train" and ev is None
                 else base
             )
-            job = _Job(split, str(chunk), str(shard), cfg, ev)
+            job = _Job(split, str(chunk), str(shard), cfg, ev, held_out=held_set if split == "train" else
+                       frozenset(), only=held_set if from_train else None)  # fmt: skip
             done = _done(shard, job)
             if done is not None:
                 records.append((split, done))
@@ -479,6 +548,7 @@ def convert_dataset(
         "source": str(src),
         "config": asdict(base),
         "evaluation_index": str(eval_index) if eval_index else None,
+        "validation_index": str(val_index) if val_index else None,
         "splits": {},
     }
     for split in splits:
@@ -500,11 +570,13 @@ def convert_dataset(
         masked = sum(r.get("masked_target_pixels", 0) for r in recs)
         if masked:  # share of target pixels marked as highlights (tgtI.spec.png), at the output size
             entry["highlight_share"] = sum(r.get("highlight_pixels", 0) for r in recs) / masked
-        if split == "test" and index is not None:
-            wanted = {k for k, v in index.items() if v is not None}
+        if indexes[split] is not None:
+            wanted = {k for k, v in indexes[split].items() if v is not None}
             found = {k for r in recs for k in r["scene_keys"]}
             entry["evaluation_index_entries"] = len(wanted)
             entry["evaluation_index_missing"] = len(wanted - found)
+        if split == "validation" and held:  # which training scenes became the validation split, and how
+            entry["held_out_from_train"] = {"count": len(held), "seed": seed, "scene_keys": held}
         manifest["splits"][split] = entry
     (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return manifest

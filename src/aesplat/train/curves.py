@@ -1,15 +1,17 @@
-"""Learning curves: held-out test metrics at fixed step intervals, against steps and training seconds.
+"""Learning curves: held-out metrics at fixed step intervals, against steps and training seconds.
 
 ``LearningCurve`` is a callback for `aesplat fit`; ``benchmarks/learning_curves.py`` adds it to each run it
 trains (``--trainer.callbacks+=aesplat.train.curves.LearningCurve``). At step 0 (the untrained model), every
-``every_n_steps`` steps and at the last step it evaluates the model on the data module's test scenes, exactly
-as `aesplat test` scores them (``AESplatModule._evaluate``: image metrics with the run's own cameras, pose
+``every_n_steps`` steps and at the last step it evaluates the model on the data module's validation scenes
+(``val_*`` columns; when the shards have a validation split) and on its test scenes, exactly as `aesplat test`
+scores them (``AESplatModule._evaluate``: image metrics with the run's own cameras, pose
 errors against the ground truth), and rewrites a CSV with one row per point. ``train_seconds`` is the wall
 time spent training (data loading, forward, backward, update, checkpoint writes), evaluation excluded; it is
 kept in the checkpoints, so a resumed run continues the clock where its checkpoint left it. Rows written
 after the checkpoint a run resumes from are dropped (those steps are trained again), and no finished point is
 evaluated twice. The copy-the-context yardsticks (``context_copy_psnr``) are the same at every point and are
-repeated in each row so that every CSV stands alone.
+repeated in each row so that every CSV stands alone. Choices between runs are made on the ``val_*`` columns;
+the test columns are reported for the chosen run (docs/validation.md).
 """
 
 from __future__ import annotations
@@ -27,8 +29,11 @@ from .metrics import COPY_BEST, COPY_MEAN, context_copy_psnr
 CURVE_COLUMNS = (
     "step", "train_seconds", "psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "num_scenes",
     "copy_mean_psnr", "copy_best_psnr",
+    "val_psnr", "val_ssim", "val_lpips", "val_rot_err_deg", "val_trans_err_deg", "val_num_scenes",
+    "val_copy_mean_psnr", "val_copy_best_psnr",
 )  # fmt: skip
 _METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg")
+SPLIT_PREFIX = {"test": "", "validation": "val_"}  # the columns of each split's figures
 
 
 def read_curve(path: str | Path) -> list[dict[str, float]]:
@@ -37,8 +42,9 @@ def read_curve(path: str | Path) -> list[dict[str, float]]:
     if not path.is_file():
         return []
     with open(path) as f:
-        return [{k: float(v) if v not in ("", None) else math.nan for k, v in row.items()} for row in
+        rows = [{k: float(v) if v not in ("", None) else math.nan for k, v in row.items()} for row in
                 csv.DictReader(f)]  # fmt: skip
+    return [{k: row.get(k, math.nan) for k in CURVE_COLUMNS} for row in rows]  # older CSVs: no val_* columns
 
 
 def write_curve(path: str | Path, rows: list[dict[str, float]]) -> None:
@@ -58,16 +64,18 @@ def write_curve(path: str | Path, rows: list[dict[str, float]]) -> None:
 
 
 def _cell(key: str, value: float) -> str:
-    if key in ("step", "num_scenes"):
+    if key in ("step", "num_scenes", "val_num_scenes"):
         return str(int(value))
     return f"{value:.6g}"
 
 
 class LearningCurve(Callback):
-    """Evaluate on the test scenes at step 0, every ``every_n_steps`` steps and at ``trainer.max_steps``.
+    """Evaluate on the validation and test scenes at step 0, every ``every_n_steps`` steps and at
+    ``trainer.max_steps``.
 
-    csv_path: the curve's CSV (rewritten at each point). max_scenes: evaluate on the first this many test
-    scenes only (None: all; the scenes are read once and kept in memory). Single-device runs only.
+    csv_path: the curve's CSV (rewritten at each point). max_scenes: evaluate on the first this many scenes of
+    each split only (None: all; the scenes are read once and kept in memory). The validation columns stay
+    empty when the shards have no validation split. Single-device runs only.
     """
 
     def __init__(self, csv_path: str, every_n_steps: int = 500, max_scenes: int | None = None) -> None:
@@ -78,8 +86,8 @@ class LearningCurve(Callback):
         self.max_scenes = max_scenes
         self.train_seconds = 0.0
         self._clock: float | None = None
-        self._batches: list | None = None
-        self._copy: dict[str, float] | None = None
+        self._batches: dict[str, list] = {}
+        self._copy: dict[str, dict[str, float]] = {}
 
     # ------------------------------------------------------------------------------------------ state
     def state_dict(self) -> dict[str, float]:
@@ -110,19 +118,25 @@ class LearningCurve(Callback):
         self._clock = time.perf_counter()
 
     # ------------------------------------------------------------------------------------------ evaluation
-    def _test_batches(self, trainer: Trainer, pl_module: LightningModule) -> list:
-        """The test scenes' batches, read once (the data module's test loader, in its fixed order)."""
-        if self._batches is None:
+    def _split_batches(self, trainer: Trainer, split: str) -> list:
+        """One split's batches, read once (the data module's loader of it, in its fixed order)."""
+        if split not in self._batches:
+            dm = trainer.datamodule
+            loader = dm.test_dataloader() if split == "test" else dm.val_dataloader()
             batches, scenes = [], 0
-            for batch in trainer.datamodule.test_dataloader():
+            for batch in loader:
                 if self.max_scenes is not None and scenes >= self.max_scenes:
                     break
                 batches.append(batch)
                 scenes += batch.batch_size
             if not batches:
-                raise RuntimeError("LearningCurve: the data module's test split has no scenes")
-            self._batches = batches
-        return self._batches
+                raise RuntimeError(f"LearningCurve: the data module's {split} split has no scenes")
+            self._batches[split] = batches
+        return self._batches[split]
+
+    def _splits(self, trainer: Trainer) -> list[str]:
+        has_split = getattr(trainer.datamodule, "has_split", None)
+        return ["validation", "test"] if has_split is not None and has_split("validation") else ["test"]
 
     @torch.no_grad()
     def _record(self, trainer: Trainer, pl_module: LightningModule, rows: list[dict[str, float]]) -> None:
@@ -130,22 +144,30 @@ class LearningCurve(Callback):
         was_training = pl_module.training
         pl_module.eval()
         devices = [pl_module.device] if pl_module.device.type == "cuda" else []
-        sums, counts, pairs = dict.fromkeys(_METRICS, 0.0), dict.fromkeys(_METRICS, 0), []
+        row: dict[str, float] = {"step": trainer.global_step, "train_seconds": self.train_seconds}
         with torch.random.fork_rng(devices=devices):  # evaluating must not change the training run's RNG
-            for raw in self._test_batches(trainer, pl_module):
-                batch = pl_module.on_after_batch_transfer(raw.to(pl_module.device), 0)
-                metrics, _ = pl_module._evaluate(batch)  # per scene, as `aesplat test` scores them
-                for key, values in metrics.items():
-                    sums[key] += float(values.sum())
-                    counts[key] += values.numel()
-                if self._copy is None:
-                    pairs += [(batch.context.images[i : i + 1].cpu(), batch.target.images[i : i + 1].cpu())
-                              for i in range(batch.batch_size)]  # fmt: skip
+            for split in self._splits(trainer):
+                row.update(self._evaluate(trainer, pl_module, split))
         pl_module.train(was_training)
-        if self._copy is None:
-            self._copy = context_copy_psnr(pairs)
-        row = {k: sums[k] / counts[k] if counts[k] else math.nan for k in _METRICS}
-        row.update(step=trainer.global_step, train_seconds=self.train_seconds, num_scenes=counts["psnr"],
-                   copy_mean_psnr=self._copy[COPY_MEAN], copy_best_psnr=self._copy[COPY_BEST])  # fmt: skip
         if trainer.is_global_zero:
             write_curve(self.csv_path, [*rows, row])
+
+    def _evaluate(self, trainer: Trainer, pl_module: LightningModule, split: str) -> dict[str, float]:
+        """One split's columns: mean metrics per target view, the scene count and the copy yardsticks."""
+        sums, counts, pairs = dict.fromkeys(_METRICS, 0.0), dict.fromkeys(_METRICS, 0), []
+        for raw in self._split_batches(trainer, split):
+            batch = pl_module.on_after_batch_transfer(raw.to(pl_module.device), 0)
+            metrics, _ = pl_module._evaluate(batch)  # per scene, as `aesplat test` scores them
+            for key, values in metrics.items():
+                sums[key] += float(values.sum())
+                counts[key] += values.numel()
+            if split not in self._copy:
+                pairs += [(batch.context.images[i : i + 1].cpu(), batch.target.images[i : i + 1].cpu())
+                          for i in range(batch.batch_size)]  # fmt: skip
+        if split not in self._copy:
+            self._copy[split] = context_copy_psnr(pairs)
+        pre = SPLIT_PREFIX[split]
+        out = {pre + k: sums[k] / counts[k] if counts[k] else math.nan for k in _METRICS}
+        out.update({pre + "num_scenes": counts["psnr"], pre + "copy_mean_psnr": self._copy[split][COPY_MEAN],
+                    pre + "copy_best_psnr": self._copy[split][COPY_BEST]})  # fmt: skip
+        return out
