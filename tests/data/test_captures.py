@@ -484,7 +484,7 @@ def test_aesplat_test_runs_on_converted_captures(scene, chunk_reference, tmp_pat
     run = tmp_path / "run"
     cli.main(["test", "-c", str(REPO / "conf" / "smoke.yaml"), "--data.root", str(tmp_path / "shards"),
               "--trainer.default_root_dir", str(run)])  # fmt: skip
-    summary = json.loads((run / "test" / "summary.json").read_text())
+    summary = json.loads((run / "test-latest" / "summary.json").read_text())
     assert summary["num_scenes"] == 2 and summary["metrics"]["psnr"] > 5
 
 

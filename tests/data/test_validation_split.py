@@ -57,7 +57,7 @@ def test_synthetic_validation_split_converts_with_its_index_and_the_datamodule_v
     entry = manifest["splits"]["validation"]
     assert entry["scenes"] == 2 and entry["samples"] == 2 and entry["evaluation_index_missing"] == 0
     assert manifest["validation_index"].endswith("validation_index.json")
-    dm = DataModule(root=str(tmp_path / "out"), image_size=16, num_workers=0, near=0.1, far=20.0)
+    dm = DataModule(root=str(tmp_path / "out"), image_size=16, num_workers=0)
     assert dm.validation_split() == "validation"
     val_scenes = [s for b in dm.eval_dataset("val") for s in b.scene]
     test_scenes = [s for b in dm.eval_dataset("test") for s in b.scene]
@@ -71,7 +71,7 @@ def test_synthetic_validation_split_converts_with_its_index_and_the_datamodule_v
 def test_without_a_validation_split_validation_falls_back_to_test_with_a_warning(tmp_path, caplog):
     generate_dataset(tmp_path / "src", scenes=2, test_scenes=1, val_scenes=0, **TINY)
     convert_dataset(tmp_path / "src", tmp_path / "out", size=16, progress=False)
-    dm = DataModule(root=str(tmp_path / "out"), image_size=16, num_workers=0, near=0.1, far=20.0)
+    dm = DataModule(root=str(tmp_path / "out"), image_size=16, num_workers=0)
     with caplog.at_level(logging.WARNING, logger="aesplat.data"):
         assert [s for b in dm.eval_dataset("val") for s in b.scene] == ["test003_00000"]
     assert "no validation split" in caplog.text and "--val-scenes" in caplog.text
@@ -89,7 +89,7 @@ def test_to_shards_val_scenes_holds_out_training_scenes_deterministically(tmp_pa
     ]
     assert a["splits"]["train"]["scenes"] == 3 and a["splits"]["validation"]["scenes"] == 2
     assert a["splits"]["train"]["samples"] + 8 * 2 == whole["splits"]["train"]["samples"]
-    dm = DataModule(root=str(tmp_path / "a"), image_size=16, num_workers=0, near=0.1, far=20.0)
+    dm = DataModule(root=str(tmp_path / "a"), image_size=16, num_workers=0)
     assert sorted(s for batch in dm.eval_dataset("val") for s in batch.scene) == keys
     trained = {r for shard in (tmp_path / "a" / "train").glob("*.json") for r in json.loads(shard.read_text())
                ["scene_keys"]}  # fmt: skip
