@@ -1,5 +1,6 @@
 """benchmarks/bench_train_step.py: config overrides, recorded loss curves and their comparison."""
 
+import csv
 import math
 import os
 import subprocess
@@ -143,3 +144,32 @@ def test_the_gpu_suite_rehearsed_on_the_cpu_resumes_and_compares(bench, tmp_path
 
     needs_cuda = _suite(tmp_path, "render", **rehearse)
     assert needs_cuda.returncode == 2 and "need CUDA" in needs_cuda.stderr
+
+
+def test_the_fit_part_reads_its_figures_from_the_run_logs(tmp_path):
+    fit = load_benchmark("fit_throughput")
+    rows = [  # as the CSV logger writes them: the throughput windows and the module's scalars on their own rows
+        {"step": 9, "train/sec_per_step": 5.0, "train/samples_per_sec": 2.0, "train/peak_memory_gib": 1.0},
+        {"step": 9, "train/loss": 0.1, "train/skipped_steps": 0},
+        {"step": 19, "train/sec_per_step": 0.4, "train/samples_per_sec": 25.0, "train/peak_memory_gib": 3.0},
+        {"step": 29, "train/sec_per_step": 0.6, "train/samples_per_sec": 16.0, "train/peak_memory_gib": 2.5},
+        {"step": 39, "train/sec_per_step": 0.5, "train/samples_per_sec": 20.0, "train/peak_memory_gib": 2.5},
+        {"step": 39, "train/loss": 0.1, "train/skipped_steps": 2},
+    ]
+    path = tmp_path / "metrics.csv"
+    keys = ["step", "train/sec_per_step", "train/samples_per_sec", "train/peak_memory_gib", "train/loss",
+            "train/skipped_steps"]  # fmt: skip
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(rows)
+    out = fit.summarize(path)
+    assert out["windows after the first"] == 3 and out["first window, s / step (compilation, warm-up)"] == 5.0
+    assert out["seconds per step (median)"] == 0.5 and out["samples / s (median)"] == 20.0
+    assert out["peak memory (GiB)"] == 3.0 and out["skipped steps"] == 2
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(rows[:2])
+    with pytest.raises(SystemExit, match="1 throughput window"):
+        fit.summarize(path)
