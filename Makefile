@@ -89,8 +89,8 @@ docs-serve: $(DOCS_STAMP)
 # `make demo`: synthetic scenes -> shards -> untrained test -> CPU training -> test -> bench -> report.
 # Everything lands in $(DEMO_DIR); REPORT.md there states the PSNR gain over the untrained model. The trained
 # model is evaluated at its last checkpoint (600 steps, fixed). Validation during training runs on the
-# $(DEMO_VAL_SCENES) validation scenes, a seed stream of their own, never on the test scenes: every setting of
-# conf/demo.yaml was chosen on them (docs/validation.md).
+# $(DEMO_VAL_SCENES) validation scenes, a seed stream of their own, never on the test scenes; the warm start and
+# the pose-free learning rate of conf/demo.yaml were chosen on them (docs/validation.md).
 DEMO_CONFIG ?= conf/demo.yaml
 DEMO_DIR ?= outputs/demo
 # Image size of the demo shards; the same as data.image_size in conf/demo.yaml (its settings are tuned for 42).

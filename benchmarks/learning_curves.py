@@ -36,7 +36,7 @@ Runs (``--runs``; the levers are the loss and data options that widen the pose s
                      ``--warm-start-config`` (conf/demo.yaml conf/warmstart.yaml: the data set's cameras
                      render, the camera head is supervised) for ``--warm-start-steps`` on a disjoint scene
                      set (synthetic.py --seed 1, 1,536 training scenes, in OUT/warm-start-data), resumable;
-                     its last.ckpt starts it, with the correlation branch and lr 1e-4
+                     its last.ckpt starts it, with the correlation branch and lr 5e-5
                      (``WARM_START_FINE_TUNE``, as conf/demo.yaml)
 
 ``--define NAME='ARGS'`` adds a run of your own (ARGS: `aesplat fit` overrides). ``--data-seeds 0 1 2`` trains
@@ -89,9 +89,9 @@ SEED_TAG = "@data-seed-"  # a run trained once per --data-seeds value: pose-free
 DEMO_VAL_SCENES = "12"  # validation scenes of the demo's shards, as scripts/demo.sh makes them
 WARM_START_SCENES = "--seed 1 --scenes 1536 --test-scenes 8"  # disjoint from the demo's scenes (seed 0)
 # The pose-free stage from the warm start, as conf/demo.yaml sets it: its network (the camera head's correlation
-# branch) and a learning rate five times lower than from scratch (at 5e-4 it loses the warm start's rotations).
-WARM_START_FINE_TUNE = ["--model.net.options", '{"camera_correlation": true}', "--model.optim.lr", "1e-4",
-                        "--model.optim.appearance_lr", "2e-4"]  # fmt: skip
+# branch) and a learning rate a tenth of the from-scratch one (chosen on validation scenes, docs/validation.md)
+WARM_START_FINE_TUNE = ["--model.net.options", '{"camera_correlation": true}', "--model.optim.lr", "5e-5",
+                        "--model.optim.appearance_lr", "1e-4"]  # fmt: skip
 
 
 def warm_start(args: argparse.Namespace) -> Path:

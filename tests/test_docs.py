@@ -169,7 +169,7 @@ def lightning_parser():
     """The parser `aesplat fit|validate|test` uses, built once (the same class and options as the command)."""
     from aesplat.cli import _lightning_cli
 
-    cli_class, module_class, data_class = _lightning_cli()
+    cli_class, module_class, data_class, parser_class, _ = _lightning_cli()
     captured = {}
 
     class Capture(cli_class):
@@ -179,7 +179,7 @@ def lightning_parser():
 
     with pytest.raises(_Stop):
         Capture(module_class, data_class, args=["fit"], parser_kwargs={"parser_mode": "omegaconf"},
-                auto_configure_optimizers=False)  # fmt: skip
+                parser_class=parser_class, auto_configure_optimizers=False)  # fmt: skip
     return captured["parser"]
 
 

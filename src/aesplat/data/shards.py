@@ -12,7 +12,7 @@ Sample layout (V = context views first, then targets)::
     KEY.extrinsics.npy   float32 [V, 4, 4] camera-to-world in the source scene's world frame
     KEY.intrinsics.npy   float32 [V, 3, 3] normalised, for the cropped image
     KEY.meta.json        {"scene", "dataset", "context", "target", "gap", "overlap"}
-    KEY.tgt0.spec.png …  test samples of scenes whose chunk entry carries ``specular`` (the synthetic set) only:
+    KEY.tgt0.spec.png …  test and validation samples of scenes whose chunk entry carries ``specular`` only:
                          8-bit mask per target, 255 where the specular term exceeds ``specular_threshold``.
                          The magnitude is cropped like the image, area-resampled (box filter) to the output
                          size, then thresholded: a pixel is a highlight when the mean term over it exceeds it.
