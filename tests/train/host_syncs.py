@@ -149,8 +149,12 @@ class HostSyncCounter(Profiler):
 
     def record(self, what: str) -> None:
         frames = traceback.extract_stack()[:-2]
-        ours = [
-            f for f in frames if f.filename.startswith(_PROJECT) and Path(f.filename).name != "host_syncs.py"
+        ours = [  # the repository's own frames (a virtual environment inside the checkout is not ours)
+            f
+            for f in frames
+            if f.filename.startswith(_PROJECT)
+            and "site-packages" not in Path(f.filename).parts
+            and Path(f.filename).name != "host_syncs.py"
         ]
         frame = (ours or frames)[-1]
         where = f"{Path(frame.filename).parent.name}/{Path(frame.filename).name}:{frame.lineno}"
