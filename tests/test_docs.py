@@ -183,10 +183,33 @@ def lightning_parser():
     return captured["parser"]
 
 
+def _config_files(argv: list[str]) -> list[str]:
+    return [argv[i + 1] for i, arg in enumerate(argv[:-1]) if arg in ("-c", "--config")]
+
+
+def _bases(overlay: str) -> list[str]:
+    """The configs an overlay is layered on, as its own header's usage lines show (empty for a full config)."""
+    for line in (REPO / overlay).read_text().splitlines():
+        if not line.startswith("#"):
+            break
+        if "aesplat " not in line:
+            continue
+        files = _config_files(shlex.split(line.lstrip("# ").split("  #")[0]))
+        if overlay in files:
+            return files[: files.index(overlay)]
+    return []
+
+
 @pytest.mark.parametrize(("page", "command"), documented_commands(), ids=lambda value: value[:60])
 def test_documented_command_parses(page, command, monkeypatch, lightning_parser):
     monkeypatch.chdir(REPO)
     argv = _argv(command)
+    files = _config_files(argv)
+    for i, config in enumerate(
+        files
+    ):  # an overlay alone parses, but runs the defaults: its base must come first
+        missing = [base for base in _bases(config) if base not in files[:i]]
+        assert not missing, f"{page}: `{command}` layers {config} without {missing} before it"
     if argv[0] in ("predict", "bench"):
         parser = _app_module(argv[0]).build_parser()
         parser.parse_args(argv[1:])  # argparse exits (SystemExit 2) on an unknown or malformed argument
