@@ -437,8 +437,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--data-seed", type=int, default=0, help="seed of the synthetic scenes (default 0)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the report from finished runs")
     p.add_argument("--from-runs", default=None, metavar="RUNS_CSV",
-                   help="rebuild the report from this runs.csv (e.g. docs/results/ablation/runs.csv) instead of "
-                   "the runs' folders; implies --report-only")  # fmt: skip
+                   help="rebuild the report from this runs.csv (e.g. docs/results/ablation/runs.csv) instead "
+                   "of the runs' folders; implies --report-only")  # fmt: skip
     p.add_argument("--shard", default="0/1", metavar="K/N",
                    help="train only the runs whose place in the plan is K modulo N (default 0/1: all); start N "
                         "processes, 0/N .. N-1/N, to use N cores (one thread each)")  # fmt: skip
