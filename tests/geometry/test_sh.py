@@ -155,3 +155,22 @@ def test_rotation_matrix_is_differentiable_in_the_rotation():
     q = torch.randn(2, 4, dtype=torch.float64, requires_grad=True)
     c = torch.randn(2, 9, 3, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda q, c: sh_rotation_matrix(quat_to_matrix(q), 2) @ c, (q, c))
+
+
+def test_caches_first_filled_in_inference_mode_still_train():
+    """Evaluation (`aesplat test`, Lightning's validation) runs under inference mode; the SH tables it caches
+    then must not be inference tensors, or the next training step's backward fails."""
+    from aesplat.geometry import sh
+
+    for cache in (sh._PLANS, sh._MATRICES, sh._FITS):
+        cache.clear()
+    dirs = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+    coeffs = torch.randn(5, 16, 3)
+    rotation = quat_to_matrix(torch.tensor([[0.9, 0.1, -0.2, 0.3]]))
+    with torch.inference_mode():
+        eval_sh(coeffs, dirs, 3)
+        sh_rotation_matrix(rotation, 3)
+    q = torch.tensor([[0.9, 0.1, -0.2, 0.3]], requires_grad=True)
+    coeffs.requires_grad_(True)
+    (eval_sh(coeffs, dirs, 3).sum() + sh_rotation_matrix(quat_to_matrix(q), 3).sum()).backward()
+    assert torch.isfinite(q.grad).all() and torch.isfinite(coeffs.grad).all()

@@ -103,29 +103,35 @@ def _monomial_plan(degree: int, device: torch.device) -> list[tuple[Tensor, Tens
     of degree d - 1 among those of degree exactly d - 1) times (x, y or z: 0, 1 or 2)."""
     key = (degree, device)
     if key not in _PLANS:
-        plan = []
-        for d in range(2, degree + 1):
-            below = _monomial_exponents(d - 1)[num_monomials(d - 2) :]
-            parents, axes = [], []
-            for e in _monomial_exponents(d)[num_monomials(d - 1) :]:
-                axis = next(q for q in range(3) if e[q] > 0)
-                parents.append(below.index(tuple(p - (q == axis) for q, p in enumerate(e))))
-                axes.append(axis)
-            plan.append((torch.tensor(parents, device=device), torch.tensor(axes, device=device)))
-        _PLANS[key] = plan
+        _PLANS[key] = _make_plan(degree, device)
     return _PLANS[key]
+
+
+@torch.inference_mode(False)  # cached: never an inference tensor (see _fit_tensors)
+def _make_plan(degree: int, device: torch.device) -> list[tuple[Tensor, Tensor]]:
+    plan = []
+    for d in range(2, degree + 1):
+        below = _monomial_exponents(d - 1)[num_monomials(d - 2) :]
+        parents, axes = [], []
+        for e in _monomial_exponents(d)[num_monomials(d - 1) :]:
+            axis = next(q for q in range(3) if e[q] > 0)
+            parents.append(below.index(tuple(p - (q == axis) for q, p in enumerate(e))))
+            axes.append(axis)
+        plan.append((torch.tensor(parents, device=device), torch.tensor(axes, device=device)))
+    return plan
 
 
 def _basis_matrix(degree: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """[monomials, K] matrix taking the monomial values to the basis values."""
     key = (degree, dtype, device)
     if key not in _MATRICES:
-        index = {e: n for n, e in enumerate(_monomial_exponents(degree))}
-        mat = torch.zeros(len(index), num_sh_coeffs(degree), dtype=torch.float64)
-        for k, terms in enumerate(_TERMS[: num_sh_coeffs(degree)]):
-            for coefficient, exponent in terms:
-                mat[index[exponent], k] += coefficient
-        _MATRICES[key] = mat.to(dtype=dtype, device=device)
+        with torch.inference_mode(False):  # cached: never an inference tensor (see _fit_tensors)
+            index = {e: n for n, e in enumerate(_monomial_exponents(degree))}
+            mat = torch.zeros(len(index), num_sh_coeffs(degree), dtype=torch.float64)
+            for k, terms in enumerate(_TERMS[: num_sh_coeffs(degree)]):
+                for coefficient, exponent in terms:
+                    mat[index[exponent], k] += coefficient
+            _MATRICES[key] = mat.to(dtype=dtype, device=device)
     return _MATRICES[key]
 
 
@@ -184,15 +190,22 @@ def _rotation_fit(degree: int, dtype: torch.dtype, device: torch.device) -> tupl
     and the block-diagonal mask [K-1, K-1] of those bands (computed in float64, cached)."""
     key = (degree, dtype, device)
     if key not in _FITS:
-        i = torch.arange(_FIT_DIRECTIONS, dtype=torch.float64) + 0.5
-        z = 1.0 - 2.0 * i / _FIT_DIRECTIONS
-        r, phi = torch.sqrt(1.0 - z * z), torch.pi * (1.0 + 5.0**0.5) * i
-        dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
-        pinv = torch.linalg.pinv(sh_basis(dirs, degree)[:, 1:])
-        band = torch.cat([torch.full((2 * l + 1,), l) for l in range(1, degree + 1)])
-        mask = (band[:, None] == band[None, :]).to(torch.float64)
-        _FITS[key] = tuple(t.to(dtype=dtype, device=device) for t in (dirs, pinv, mask))
+        _FITS[key] = _fit_tensors(degree, dtype, device)
     return _FITS[key]
+
+
+# Built outside inference mode: a cache filled during `aesplat test` or Lightning's validation would otherwise
+# hold inference tensors, which autograd refuses in any later training step.
+@torch.inference_mode(False)
+def _fit_tensors(degree: int, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    i = torch.arange(_FIT_DIRECTIONS, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / _FIT_DIRECTIONS
+    r, phi = torch.sqrt(1.0 - z * z), torch.pi * (1.0 + 5.0**0.5) * i
+    dirs = torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1)
+    pinv = torch.linalg.pinv(sh_basis(dirs, degree)[:, 1:])
+    band = torch.cat([torch.full((2 * l + 1,), l) for l in range(1, degree + 1)])
+    mask = (band[:, None] == band[None, :]).to(torch.float64)
+    return tuple(t.to(dtype=dtype, device=device) for t in (dirs, pinv, mask))
 
 
 def sh_rotation_matrix(rotation: Tensor, degree: int) -> Tensor:
