@@ -180,7 +180,8 @@ def test_configs_that_set_the_removed_data_depth_range_fail_with_the_fix(tmp_pat
     with pytest.raises(SystemExit) as info:
         cli.main(["fit", "-c", str(REPO / "conf/smoke.yaml"), *args, "--print_config"])
     message = str(info.value.code)
-    assert names.replace("OLD", str(old)) in message and "model.net." in message and "\n" not in message
+    assert message.startswith(f"aesplat fit: {names.replace('OLD', str(old))}")
+    assert "model.net." in message and "\n" not in message
 
 
 def test_configs_without_removed_keys_pass_the_check():

@@ -360,7 +360,7 @@ def removed_key_error(argv: Sequence[str]) -> str | None:
     for i, arg in enumerate(argv):
         key = arg[2:].split("=", 1)[0] if arg.startswith("--") else ""
         if key in REMOVED_KEYS:
-            return f"aesplat: --{key} was removed; {REMOVED_KEYS[key]}"
+            return f"--{key} was removed; {REMOVED_KEYS[key]}"
         if arg in ("-c", "--config") and i + 1 < len(argv):
             path = Path(argv[i + 1])
         elif arg.startswith("--config="):
@@ -373,14 +373,14 @@ def removed_key_error(argv: Sequence[str]) -> str | None:
         for dotted in REMOVED_KEYS:
             section, name = dotted.split(".")
             if isinstance(config.get(section), dict) and name in config[section]:
-                return f"aesplat: {path} sets {dotted}, which was removed; {REMOVED_KEYS[dotted]}"
+                return f"{path} sets {dotted}, which was removed; {REMOVED_KEYS[dotted]}"
     return None
 
 
 def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None:
     """Run fit / validate / test through the LightningCLI (``module_class``: a subclass of AESplatModule)."""
     if error := removed_key_error(argv):
-        raise SystemExit(error)
+        raise UserError(error)
     for pattern in _EXPECTED_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
     cli_class, default_module, data_class, parser_class, save_config = _lightning_cli()

@@ -1,7 +1,9 @@
-"""A 2-process CPU (gloo) DDP fit through the real entry point: it finishes and the ranks see different data."""
+"""CPU (gloo) DDP through the real entry point: a 2-process fit whose ranks see different data, and a test
+whose ranks, started apart, write one evaluation folder."""
 
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -35,3 +37,35 @@ def test_ddp_two_processes_on_cpu(smoke_shards, tmp_path):
     assert samples[0].isdisjoint(samples[1]), f"ranks trained on the same samples: {samples}"
     ckpt = torch.load(run_dir / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
     assert ckpt["global_step"] == 3
+
+
+def test_ranks_started_apart_write_one_evaluation_folder(smoke_shards, tmp_path):
+    """torchrun starts every rank itself, so each names the evaluation folder from its own clock. Rank 1 is
+    given another name here (as a clock a second later would): every render still lands in rank 0's folder."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    run_dir = tmp_path / "run"
+    command = [sys.executable, "-m", "aesplat.cli", "test", "-c", "conf/smoke.yaml", "--data.root", str(smoke_shards),
+               "--trainer.default_root_dir", str(run_dir), "--trainer.strategy", "ddp", "--trainer.devices", "2",
+               "--trainer.enable_progress_bar", "false"]  # fmt: skip
+    env = {k: v for k, v in os.environ.items() if k != "AESPLAT_EVALUATION_DIR"}
+    env.update(WANDB_MODE="disabled", PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", MASTER_ADDR="127.0.0.1",
+               MASTER_PORT=str(port), WORLD_SIZE="2", LOCAL_WORLD_SIZE="2", GROUP_RANK="0",
+               TORCHELASTIC_RUN_ID="evaluation-folder")  # fmt: skip
+    elsewhere = run_dir / "test-rank1-clock"
+    procs = [
+        subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env={**env, "RANK": str(rank), "LOCAL_RANK": str(rank),
+                              **({"AESPLAT_EVALUATION_DIR": str(elsewhere)} if rank else {})})  # fmt: skip
+        for rank in (0, 1)
+    ]
+    for proc in procs:
+        _, err = proc.communicate(timeout=420)
+        assert proc.returncode == 0, err[-6000:]
+
+    folders = sorted(p.name for p in run_dir.iterdir() if p.is_dir() and not p.is_symlink())
+    assert len(folders) == 1 and folders[0].startswith("test-20"), folders
+    out = run_dir / folders[0]
+    assert len(list((out / "renders").glob("*.png"))) == 2, "one render from each rank"
+    assert (out / "summary.json").exists() and not elsewhere.exists()

@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+import os
 
 import pytest
 import torch
@@ -73,6 +74,26 @@ def test_empty_highlight_metrics_are_blank_in_the_csv_and_skipped_in_the_summary
         table = list(csv.DictReader(f))
     assert [r["psnr_highlight"] for r in table] == ["", "", "20.0", "30.0", "40.0"]
     assert summarize(_rows())["metrics"]["psnr_highlight"] is None  # data without masks: null
+
+
+def test_evaluation_stopped_while_writing_leaves_no_summary(tmp_path, monkeypatch):
+    """A crash while summary.json is being written leaves none (never a truncated one that reads as a
+    finished evaluation) and a whole per_scene.csv beside it."""
+    real_fsync, calls = os.fsync, []
+
+    def crash_on_second_file(fd):
+        calls.append(fd)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", crash_on_second_file)
+    with pytest.raises(KeyboardInterrupt):
+        write_results(_rows(), tmp_path)
+    assert not (tmp_path / "summary.json").exists()
+    with open(tmp_path / "per_scene.csv") as f:
+        assert len(list(csv.DictReader(f))) == len(_rows())
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == ["per_scene.csv"]
 
 
 def test_ssim_identity_and_noise():

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import csv
 import json
+import io
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,17 +76,32 @@ def write_results(
     rows: list[dict], out_dir: Path, lpips_unavailable: str | None = None, cameras: str = "predicted"
 ) -> dict:
     """Write ``per_scene.csv`` and ``summary.json`` into ``out_dir``; returns the summary. ``cameras``: where
-    the rendering cameras came from (``model.cameras``), recorded in the summary."""
+    the rendering cameras came from (``model.cameras``), recorded in the summary.
+
+    Each file appears whole or not at all (written beside, then renamed), ``summary.json`` last: a folder
+    holding it is a finished evaluation, one without it an evaluation that stopped before the end.
+    """
     out_dir.mkdir(parents=True, exist_ok=True)
     rows = sorted(rows, key=lambda r: r["scene"])
-    with open(out_dir / "per_scene.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        for row in rows:
-            writer.writerow({k: _cell(row.get(k)) for k in CSV_COLUMNS})
+    table = io.StringIO(newline="")
+    writer = csv.DictWriter(table, fieldnames=CSV_COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: _cell(row.get(k)) for k in CSV_COLUMNS})
+    _write_whole(out_dir / "per_scene.csv", table.getvalue())
     summary = {"cameras": cameras, **summarize(rows, lpips_unavailable)}
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    _write_whole(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def _write_whole(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` so that a crash leaves the old file or the new one, never a part of it."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}")
+    with open(tmp, "w", newline="") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
 
 
 def _cell(value):

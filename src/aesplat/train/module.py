@@ -121,6 +121,12 @@ class AESplatModule(LightningModule):
         if datamodule is not None and hasattr(datamodule, "set_global_step"):
             datamodule.set_global_step(self.global_step)
 
+    def setup(self, stage: str) -> None:
+        if stage in ("test", "validate") and self.trainer.world_size > 1:
+            # Ranks that torchrun started each named the evaluation folder from their own clock: all write
+            # into rank 0's, so one folder holds every rank's renders.
+            self.eval_cfg.output_dir = self.trainer.strategy.broadcast(str(self.test_output_dir), src=0)
+
     def on_fit_start(self) -> None:
         warning = NetConfig(**self.hparams["net"]).random_backbone_warning()
         if warning:
