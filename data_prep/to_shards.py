@@ -166,10 +166,10 @@ def convert_capture_folders(a: argparse.Namespace) -> None:
         manifest = convert_captures(
             a.src, a.out, a.format, size=a.size, split=a.split, eval_index=a.eval_index, workers=a.workers,
             capture_path=a.capture_path, images=a.images, frame_order=a.frame_order, context_gap=a.context_gap,
-            num_targets=a.num_targets, min_gap=a.min_gap if a.min_gap is not None else 25,
-            max_gap=a.max_gap if a.max_gap is not None else 90, samples_per_scene=a.samples_per_scene,
-            train_targets=a.train_targets, max_fov_deg=a.max_fov, min_baseline=a.min_baseline,
+            num_targets=a.num_targets, samples_per_scene=a.samples_per_scene, train_targets=a.train_targets,
+            max_fov_deg=a.max_fov, min_baseline=a.min_baseline,
             expect_shape=a.expect_shape, jpeg_quality=a.jpeg_quality, seed=a.seed, dataset=a.dataset,
+            **{k: v for k, v in (("min_gap", a.min_gap), ("max_gap", a.max_gap)) if v is not None},
         )  # fmt: skip
     except (ValueError, FileNotFoundError) as e:  # bad options or source: one line, no traceback
         sys.exit(f"error: {e}")

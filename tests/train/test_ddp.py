@@ -46,8 +46,9 @@ def test_ranks_started_apart_write_one_evaluation_folder(smoke_shards, tmp_path)
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     run_dir = tmp_path / "run"
-    command = [sys.executable, "-m", "aesplat.cli", "test", "-c", "conf/smoke.yaml", "--data.root", str(smoke_shards),
-               "--trainer.default_root_dir", str(run_dir), "--trainer.strategy", "ddp", "--trainer.devices", "2",
+    command = [sys.executable, "-m", "aesplat.cli", "test", "-c", "conf/smoke.yaml",
+               "--data.root", str(smoke_shards), "--trainer.default_root_dir", str(run_dir),
+               "--trainer.strategy", "ddp", "--trainer.devices", "2",
                "--trainer.enable_progress_bar", "false"]  # fmt: skip
     env = {k: v for k, v in os.environ.items() if k != "AESPLAT_EVALUATION_DIR"}
     env.update(WANDB_MODE="disabled", PYTHONPATH=str(REPO), OMP_NUM_THREADS="1", MASTER_ADDR="127.0.0.1",
@@ -55,9 +56,19 @@ def test_ranks_started_apart_write_one_evaluation_folder(smoke_shards, tmp_path)
                TORCHELASTIC_RUN_ID="evaluation-folder")  # fmt: skip
     elsewhere = run_dir / "test-rank1-clock"
     procs = [
-        subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                         env={**env, "RANK": str(rank), "LOCAL_RANK": str(rank),
-                              **({"AESPLAT_EVALUATION_DIR": str(elsewhere)} if rank else {})})  # fmt: skip
+        subprocess.Popen(
+            command,
+            cwd=REPO,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={
+                **env,
+                "RANK": str(rank),
+                "LOCAL_RANK": str(rank),
+                **({"AESPLAT_EVALUATION_DIR": str(elsewhere)} if rank else {}),
+            },
+        )  # fmt: skip
         for rank in (0, 1)
     ]
     for proc in procs:

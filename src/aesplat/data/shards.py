@@ -480,7 +480,7 @@ def convert_dataset(
         held = held_out_keys(sorted(keys), val_scenes, seed)
         splits.insert(1, "validation")
     info = json.loads((src / "dataset.json").read_text()) if (src / "dataset.json").exists() else {}
-    gaps = info.get("gap_range", [25, 90])
+    gaps = info.get("gap_range", [ConvertConfig.min_gap, ConvertConfig.max_gap])
     base = ConvertConfig(
         size=size,
         min_gap=min_gap if min_gap is not None else int(gaps[0]),

@@ -6,8 +6,8 @@ Rows are plain dicts (one per scene) so that every rank's rows can be gathered a
 from __future__ import annotations
 
 import csv
-import json
 import io
+import json
 import math
 import os
 from dataclasses import dataclass
