@@ -13,8 +13,10 @@ scenes, side by side, at step 0, every ``--every`` steps and at the end, against
 (evaluation excluded). Writes OUT/<run>/curve.csv per run, OUT/curves.png (validation PSNR and rotation error
 against steps and against seconds, one line per run, the yardsticks as horizontal lines) and OUT/CURVES.md: a
 table of first and last validation points per run, the run chosen on them (highest validation PSNR at the
-last point; the mean over data seeds where there are several) and that run's test figures, the only test
-figures the table reports (docs/validation.md). Run it again to resume: finished
+last point; the mean over data seeds where there are several; with ``--baseline RUN --margin DB``, another
+run only if it beats RUN's validation PSNR by more than DB without a higher validation rotation error) and
+that run's test figures, the only test figures the table reports (docs/validation.md). Run it again to
+resume: finished
 runs are skipped, an interrupted one continues from its last checkpoint (OUT/<run>/checkpoints/last.ckpt,
 written at every point) without evaluating its finished points again.
 
@@ -232,18 +234,36 @@ def seed_groups(curves: dict[str, list[dict[str, float]]]) -> dict[str, list[lis
     return groups
 
 
-def choose(curves: dict[str, list[dict[str, float]]]) -> str | None:
+def last_mean(seeded: list[list[dict[str, float]]], key: str) -> float:
+    """Mean over data seeds of ``key`` at the last point."""
+    return sum(rows[-1][key] for rows in seeded) / len(seeded)
+
+
+def choose(
+    curves: dict[str, list[dict[str, float]]], baseline: str | None = None, margin: float = 0.0
+) -> str | None:
     """The run with the highest validation PSNR at its last point (mean over its data seeds); None without
-    validation figures. Test figures play no part."""
-    scores = {run: sum(rows[-1]["val_psnr"] for rows in seeded) / len(seeded)
-              for run, seeded in seed_groups(curves).items()}  # fmt: skip
+    validation figures. Test figures play no part.
+
+    With a ``baseline`` run, another run is chosen over it only if its validation PSNR exceeds the baseline's by
+    more than ``margin`` dB and its validation rotation error is not higher (a lever has to earn its place).
+    """
+    groups = seed_groups(curves)
+    scores = {run: last_mean(seeded, "val_psnr") for run, seeded in groups.items()}
     scores = {run: v for run, v in scores.items() if math.isfinite(v)}
+    if baseline is not None and baseline in scores:
+        rotation = {run: last_mean(groups[run], "val_rot_err_deg") for run in scores}
+        scores = {run: v for run, v in scores.items() if run == baseline or (
+            v > scores[baseline] + margin and not rotation[run] > rotation[baseline])}  # fmt: skip
     return max(scores, key=scores.get) if scores else None
 
 
-def summary_table(curves: dict[str, list[dict[str, float]]]) -> list[str]:
+def summary_table(
+    curves: dict[str, list[dict[str, float]]], baseline: str | None = None, margin: float = 0.0
+) -> list[str]:
     """Markdown: per run, first and last points (PSNR, rotation and translation errors) and its seconds. With
-    validation figures, the rows are validation figures, then the run chosen on them and its test figures."""
+    validation figures, the rows are validation figures, then the run chosen on them (:func:`choose`) and its
+    test figures."""
     pre = "val_" if has_validation(curves) else ""
     split = "validation" if pre else "test"
     lines = [
@@ -264,11 +284,15 @@ def summary_table(curves: dict[str, list[dict[str, float]]]) -> list[str]:
     lines += ["", f"Copy-the-context yardsticks on the same {count} {split} scenes: mean of the context views "
               f"{first[pre + 'copy_mean_psnr']:.2f} dB, the better context view "
               f"{first[pre + 'copy_best_psnr']:.2f} dB."]  # fmt: skip
-    chosen = choose(curves)
+    chosen = choose(curves, baseline, margin)
     if chosen is None:
         return lines
     seeded = groups[chosen]
-    lines += ["", f"Chosen on the validation scenes (highest validation PSNR at the last point): **{chosen}**. "
+    rule = "highest validation PSNR at the last point"
+    if baseline in groups:
+        rule += (f"; another run only over **{baseline}**, if its validation PSNR exceeds {baseline}'s by more "
+                 f"than {margin:g} dB and its validation rotation error is not higher")  # fmt: skip
+    lines += ["", f"Chosen on the validation scenes ({rule}): **{chosen}**. "
               "Its test figures (the only test figures reported here):", "",
               "| run | steps | training s | s/step | test PSNR start → end (dB) | test rotation error start → "
               "end (°) | test translation error start → end (°) |",
@@ -322,6 +346,10 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"train every run once per data seed (`--data.seed S`), as RUN{SEED_TAG}S; "
                         "CURVES.md adds each run's mean and 95 %% interval over them")  # fmt: skip
     parser.add_argument("--out", type=Path, default=Path("outputs/curves"), help="one folder per run, the plot")
+    parser.add_argument("--baseline", metavar="RUN",
+                        help="choose another run over RUN only if it beats RUN by --margin")  # fmt: skip
+    parser.add_argument("--margin", type=float, default=0.0, metavar="DB",
+                        help="validation PSNR a run must gain over --baseline, in dB (default 0)")  # fmt: skip
     parser.add_argument("--warm-start-config", nargs="+", default=["conf/demo.yaml", "conf/warmstart.yaml"],
                         help="the warm start's config files, layered left to right")  # fmt: skip
     parser.add_argument("--warm-start-steps", type=int, default=8000, help="steps of the warm start (8000)")
@@ -338,6 +366,8 @@ def main(argv: list[str] | None = None) -> int:
         runs[name] = shlex.split(overrides)
         if name not in args.runs:
             args.runs.append(name)
+    if args.baseline is not None and args.baseline not in args.runs:
+        parser.error(f"--baseline {args.baseline} is not one of the runs: {', '.join(args.runs)}")
     unknown = [name for name in args.runs if name not in runs]
     if unknown:
         parser.error(f"unknown run(s) {', '.join(unknown)}; known: {', '.join(runs)} (or --define NAME=ARGS)")
@@ -369,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
     curves = {name: read_curve(args.out / name / "curve.csv") for name in names}
     title = f"{' + '.join(args.config)}, {args.size} px, shards {shards}"
     plot_curves(curves, args.out / "curves.png", title)
-    table = summary_table(curves)
+    table = summary_table(curves, args.baseline, args.margin)
     (args.out / "CURVES.md").write_text("\n".join([f"# Learning curves ({title})", "", *table]) + "\n")
     print("\n".join(table))
     print(f"learning_curves: wrote {args.out / 'curves.png'} and {args.out / 'CURVES.md'}")

@@ -132,3 +132,27 @@ def test_learning_curves_choose_on_validation_figures_and_report_test_for_the_ch
     assert "validation PSNR start → end" in table and "**b**" in table
     assert "18.25" in table and "18.75" in table and "19.50" not in table  # a's test figure is not reported
     assert "mean of the context views 11.00 dB" in table and "mean of the context views 10.00 dB" in table
+
+
+def test_learning_curves_keep_the_baseline_unless_a_run_beats_it_by_the_margin():
+    driver = load_benchmark("learning_curves")
+
+    def curve(val, rotation, test):
+        base = {k: math.nan for k in CURVE_COLUMNS}
+        base.update(step=10, train_seconds=10.0, psnr=test, val_psnr=val, rot_err_deg=1.0,
+                    val_rot_err_deg=rotation, trans_err_deg=2.0, val_trans_err_deg=2.0, num_scenes=3,
+                    val_num_scenes=3, copy_mean_psnr=10.0, copy_best_psnr=9.0, val_copy_mean_psnr=11.0,
+                    val_copy_best_psnr=9.5)  # fmt: skip
+        return [base]
+
+    curves = {"demo": curve(19.50, 2.0, 20.00), "blur": curve(19.70, 2.0, 20.10)}
+    assert driver.choose(curves) == "blur"  # no baseline: the highest validation PSNR
+    assert driver.choose(curves, "demo", 0.25) == "demo"  # +0.20 dB is within the margin
+    assert driver.choose(curves, "demo", 0.1) == "blur"
+    curves["views"] = curve(19.90, 2.5, 20.30)  # beats the margin, but with a higher rotation error
+    assert driver.choose(curves, "demo", 0.25) == "demo"
+    curves["views"] = curve(19.90, 1.9, 20.30)
+    assert driver.choose(curves, "demo", 0.25) == "views"
+    table = "\n".join(driver.summary_table({"demo": curves["demo"], "blur": curves["blur"]}, "demo", 0.25))
+    assert "only over **demo**, if its validation PSNR exceeds demo's by more than 0.25 dB" in table
+    assert "**demo**. Its test figures" in table and "20.10" not in table  # blur's test figure is not reported
