@@ -289,17 +289,35 @@ def warm_start_section(
     return lines + [""]
 
 
-def has_validation_split(root: str | None) -> bool:
-    """Whether the shards under ``root`` hold a validation split (their manifest lists one)."""
+def validation_samples(root: str | None) -> int:
+    """Samples (one per scene) of the validation split of the shards under ``root``; 0 without one."""
     manifest = Path(root or "") / "manifest.json"
-    return manifest.is_file() and "validation" in json.loads(manifest.read_text()).get("splits", {})
+    if not manifest.is_file():
+        return 0
+    split = json.loads(manifest.read_text()).get("splits", {}).get("validation")
+    return 0 if split is None else int(split.get("samples", 0))
 
 
-def selection_section(metrics: list[dict[str, float]], trained: dict, validated: bool) -> list[str]:
+def validated_scenes(samples: int, config: dict) -> int:
+    """How many of ``samples`` validation scenes one validation pass of the run scored: all, unless the run's
+    ``trainer.limit_val_batches`` (a number of batches of ``data.eval_batch_size``, or a fraction) cut it."""
+    limit = config.get("trainer", {}).get("limit_val_batches")
+    batch = int(config.get("data", {}).get("eval_batch_size") or 1)
+    batches = math.ceil(samples / batch)
+    if isinstance(limit, bool) or limit is None:
+        return samples
+    cut = int(limit) if isinstance(limit, int) else int(batches * float(limit))
+    return min(samples, min(batches, cut) * batch)
+
+
+def selection_section(
+    metrics: list[dict[str, float]], trained: dict, samples: int, scored: int | None = None
+) -> list[str]:
     """How the run's settings were chosen (on validation scenes, never on the test scenes), with the last
-    validation figures of the run beside its test figures."""
+    validation figures of the run beside its test figures. ``samples``: scenes of the validation split (0:
+    none); ``scored``: how many of them a validation pass scored (default: all)."""
     lines = ["## How this setting was chosen", ""]
-    if not validated:
+    if not samples:
         return lines + [
             "These shards have **no validation split**: validation during training ran on the test scenes, so "
             "a checkpoint or setting picked on it would have seen them. Make one with `data_prep/synthetic.py "
@@ -319,7 +337,8 @@ def selection_section(metrics: list[dict[str, float]], trained: dict, validated:
         lines += [
             "| split | PSNR (dB) | rotation error (°) | translation error (°) |",
             "| --- | ---: | ---: | ---: |",
-            f"| validation (step {int(last['step'])}) | {fmt(last.get('val/psnr'), '{:.2f}')} | "
+            f"| validation (step {int(last['step'])}, {samples if scored is None else scored} of {samples} "
+            f"scenes) | {fmt(last.get('val/psnr'), '{:.2f}')} | "
             f"{fmt(last.get('val/rot_err_deg'), '{:.2f}')} | {fmt(last.get('val/trans_err_deg'), '{:.2f}')} |",
             f"| test (trained) | {fmt(trained['metrics'].get('psnr'), '{:.2f}')} | "
             f"{fmt(trained['metrics'].get('rot_err_deg'), '{:.2f}')} | "
@@ -448,6 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     skipped = int(max((r.get("train/skipped_steps", 0) for r in train_rows), default=0))
     module = config.get("model", {})
     data, net, optim = config.get("data", {}), module.get("net", {}), module.get("optim", {})
+    val_samples = validation_samples(data.get("root"))
     params = sum(p.numel() for p in loaded.model.parameters())
     lines = [
         "# aesplat demo report",
@@ -480,7 +500,7 @@ def main(argv: list[str] | None = None) -> int:
         *[f"| {name} | {value:.2f} |" for name, value in baselines.items()],
         "",
         *(warm_start_section(random_init, trained, baselines, weights) if weights and random_init else []),
-        *selection_section(metrics, trained, has_validation_split(data.get("root"))),
+        *selection_section(metrics, trained, val_samples, validated_scenes(val_samples, config)),
         *posed_section(initial, trained, args.posed_initial, args.posed_trained, start),
         "## Setup",
         "",

@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import pytest
 import torch
 
 from .script_loader import load_script
@@ -93,15 +94,27 @@ def test_the_selection_section_shows_validation_beside_test_or_warns_without_a_v
     metrics = [{"step": 299.0, "val/psnr": 19.1, "val/rot_err_deg": 2.5, "val/trans_err_deg": 7.0},
                {"step": 599.0, "val/psnr": 19.41, "val/rot_err_deg": 2.37, "val/trans_err_deg": 7.26},
                {"step": 599.0, "train/loss": 0.1}]  # fmt: skip
-    text = "\n".join(report.selection_section(metrics, trained, validated=True))
+    text = "\n".join(report.selection_section(metrics, trained, 12))
     assert "chosen on *validation* scenes" in text
-    assert "| validation (step 599) | 19.41 | 2.37 | 7.26 |" in text
+    assert "| validation (step 599, 12 of 12 scenes) | 19.41 | 2.37 | 7.26 |" in text
     assert "| test (trained) | 19.98 | 3.25 | 7.40 |" in text
-    warned = "\n".join(report.selection_section(metrics, trained, validated=False))
+    assert "(step 599, 6 of 12 scenes)" in "\n".join(report.selection_section(metrics, trained, 12, 6))
+    warned = "\n".join(report.selection_section(metrics, trained, 0))
     assert "no validation split" in warned and "| validation" not in warned
     shards = tmp_path / "shards"
     shards.mkdir()
     (shards / "manifest.json").write_text('{"splits": {"train": {}, "test": {}}}')
-    assert not report.has_validation_split(str(shards))
-    (shards / "manifest.json").write_text('{"splits": {"train": {}, "validation": {}, "test": {}}}')
-    assert report.has_validation_split(str(shards)) and not report.has_validation_split(None)
+    assert report.validation_samples(str(shards)) == 0 and report.validation_samples(None) == 0
+    manifest = {"splits": {"train": {}, "validation": {"samples": 12}, "test": {}}}
+    (shards / "manifest.json").write_text(json.dumps(manifest))
+    assert report.validation_samples(str(shards)) == 12
+
+
+@pytest.mark.parametrize(
+    ("trainer", "eval_batch", "scored"),
+    [({}, 1, 12), ({"limit_val_batches": 1.0}, 1, 12), ({"limit_val_batches": 6}, 1, 6),
+     ({"limit_val_batches": 4}, 2, 8), ({"limit_val_batches": 0.5}, 1, 6), ({"limit_val_batches": 100}, 1, 12)],
+)  # fmt: skip
+def test_the_report_counts_the_validation_scenes_a_pass_scored(trainer, eval_batch, scored):
+    config = {"trainer": trainer, "data": {"eval_batch_size": eval_batch}}
+    assert _report_module().validated_scenes(12, config) == scored
