@@ -37,7 +37,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from aesplat.errors import MissingFileError, UserError, debug, fail
+from aesplat.errors import MissingFileError, UserError, debug, run_reporting_user_errors
 
 DEFAULT_RUN_DIR = "outputs/run"
 
@@ -422,21 +422,21 @@ def main(argv: Sequence[str] | None = None) -> None:
     command = (
         argv[0] if argv and argv[0] in ("predict", "bench", "fit", "validate", "test") else "fit|validate|test"
     )
-    try:
-        if command == "predict":
-            from aesplat.predict import main as predict_main
+    # A UserError is the user's to mend: one line; anything else is a bug and keeps its traceback.
+    run_reporting_user_errors(command, lambda: _run_command(command, argv))
 
-            predict_main(argv[1:])
-        elif command == "bench":
-            from aesplat.tradeoffs import main as bench_main
 
-            bench_main(argv[1:])
-        else:
-            run_lightning(argv)
-    except UserError as err:  # the user's to mend: one line; anything else is a bug and keeps its traceback
-        if debug():
-            raise
-        fail(command, str(err))
+def _run_command(command: str, argv: list[str]) -> None:
+    if command == "predict":
+        from aesplat.predict import main as predict_main
+
+        predict_main(argv[1:])
+    elif command == "bench":
+        from aesplat.tradeoffs import main as bench_main
+
+        bench_main(argv[1:])
+    else:
+        run_lightning(argv)
 
 
 if __name__ == "__main__":

@@ -36,7 +36,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 from torch import Tensor
 from tqdm import tqdm
 
-from .errors import MissingFileError, UserError, debug, fail
+from .errors import MissingFileError, UserError, run_reporting_user_errors
 from .export import VIEWER_MAX_SH_DEGREE, drop_transparent, write_ply
 from .geometry import (
     denormalize_intrinsics,
@@ -496,12 +496,7 @@ def staged_output(out: Path, overwrite: bool):
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``aesplat predict`` (see ``--help``)."""
     args = build_parser().parse_args(argv)
-    try:
-        return _predict(args)
-    except UserError as err:
-        if debug():
-            raise
-        fail("predict", str(err))
+    return run_reporting_user_errors("predict", lambda: _predict(args))
 
 
 def _predict(args: argparse.Namespace) -> int:
