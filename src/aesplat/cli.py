@@ -37,7 +37,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from aesplat.errors import MissingFileError, UserError, debug, run_reporting_user_errors
+from aesplat.errors import MissingFileError, UserError, check_writable, debug, run_reporting_user_errors
 
 DEFAULT_RUN_DIR = "outputs/run"
 
@@ -300,11 +300,7 @@ def writable_parent(folder: Path, flag: str) -> None:
     """``folder`` is (or can be made) a folder this process may write into."""
     if folder.exists() and not folder.is_dir():
         raise UserError(f"{flag} {folder} is a file, not a folder")
-    probe = folder.resolve()
-    while not probe.exists():
-        probe = probe.parent
-    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
-        raise UserError(f"{flag} {folder}: cannot write in {probe} (no permission)")
+    check_writable(folder, f"{flag} {folder}")
 
 
 def clear_run_dir(run_dir: str | Path) -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from pathlib import Path
 from typing import NoReturn, TypeVar
 
 DEBUG_ENV = "AESPLAT_DEBUG"
@@ -23,6 +24,16 @@ class UserError(ValueError):
 
 class MissingFileError(UserError, FileNotFoundError):
     """A file or folder the command needs does not exist."""
+
+
+def check_writable(folder: Path, named: str) -> None:
+    """``folder`` is, or can be created inside, a folder this process may write into; else a UserError
+    "``named``: cannot write in ..." naming the nearest existing folder."""
+    probe = folder.resolve()
+    while not probe.exists():
+        probe = probe.parent
+    if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
+        raise UserError(f"{named}: cannot write in {probe} (no permission)")
 
 
 def debug() -> bool:

@@ -36,7 +36,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 from torch import Tensor
 from tqdm import tqdm
 
-from .errors import MissingFileError, UserError, run_reporting_user_errors
+from .errors import MissingFileError, UserError, check_writable, run_reporting_user_errors
 from .export import VIEWER_MAX_SH_DEGREE, drop_transparent, write_ply
 from .geometry import (
     denormalize_intrinsics,
@@ -463,11 +463,7 @@ def check_output_dir(out: Path, overwrite: bool) -> None:
         raise UserError(
             f"--out {out} is not empty; give a new folder, or --overwrite to replace it (as a whole)"
         )
-    parent = out.resolve().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise UserError(f"--out {out}: cannot write in {parent} (no permission)")
+    check_writable(out.resolve().parent, f"--out {out}")  # the folder is renamed into place beside it
 
 
 @contextmanager
