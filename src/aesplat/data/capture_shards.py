@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
@@ -161,9 +160,7 @@ def convert_capture(job: _Job) -> dict[str, Any]:
             stale.unlink(missing_ok=True)
         message = str(e) if str(e).startswith(f"{name}:") else f"{name}: {e}"
         return {"scene": name, "refused": e.reason, "message": message}
-    tmp = shard.with_suffix(".tar.tmp")
-    write_tar(tmp, samples)
-    os.replace(tmp, shard)
+    write_tar(shard, samples)
     record = {
         "shard": shard.name,
         "scene": name,

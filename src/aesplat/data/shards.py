@@ -232,13 +232,16 @@ def make_sample(scene: dict[str, Any], context: list[int], target: list[int], ov
 
 
 def write_tar(path: Path, samples: list[tuple[str, dict[str, bytes]]]) -> None:
-    """Write samples [(key, {ext: bytes})] as a WebDataset tar (fixed mtime: reproducible checksums)."""
-    with tarfile.open(path, "w", format=tarfile.USTAR_FORMAT) as tar:
+    """Write samples [(key, {ext: bytes})] as a WebDataset tar (fixed mtime: reproducible checksums), under a
+    temporary name (``*.tar.tmp``) renamed to ``path`` once complete: a reader never sees half a shard."""
+    tmp = Path(path).with_suffix(".tar.tmp")
+    with tarfile.open(tmp, "w", format=tarfile.USTAR_FORMAT) as tar:
         for key, sample in samples:
             for ext, data in sample.items():
                 info = tarfile.TarInfo(f"{key}.{ext}")
                 info.size, info.mtime, info.mode = len(data), 0, 0o644
                 tar.addfile(info, io.BytesIO(data))
+    os.replace(tmp, path)
 
 
 def sha256(path: Path) -> str:
@@ -341,9 +344,7 @@ def convert_chunk(job: _Job) -> dict[str, Any]:
         shard.unlink(missing_ok=True)  # a shard of an earlier conversion of this chunk is stale now
         shard.with_suffix(".json").unlink(missing_ok=True)
         return record
-    tmp = shard.with_suffix(".tar.tmp")
-    write_tar(tmp, samples)
-    os.replace(tmp, shard)
+    write_tar(shard, samples)
     record.update(sha256=sha256(shard), bytes=shard.stat().st_size)
     shard.with_suffix(".json").write_text(json.dumps(record, indent=1))
     return record
