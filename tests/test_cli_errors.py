@@ -5,7 +5,9 @@ process (the exit goes through SystemExit, as the console script's); one subproc
 point's stderr and ``AESPLAT_DEBUG=1``.
 """
 
+import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -84,6 +86,33 @@ def test_missing_or_empty_data_root(command, capsys, tmp_path):
         f"aesplat {command}: no shards in {tmp_path / 'empty' / split}"
     )
     assert not run_dir.exists()  # no config.yaml, wandb/ or wandb_run_id before the inputs were checked
+
+
+def test_fit_checks_the_split_validation_runs_on(tmp_path):
+    """Shards with a validation split and no test split train (validation needs no test scene); their
+    validation shards must be there."""
+    from jsonargparse import Namespace
+
+    generate_dataset(tmp_path / "src", scenes=2, test_scenes=1, val_scenes=1, frames=12, height=48, width=64,
+                     seed=1)  # fmt: skip
+    root = tmp_path / "shards"
+    convert_dataset(tmp_path / "src", root, size=28, progress=False)
+    manifest = json.loads((root / "manifest.json").read_text())
+    del manifest["splits"]["test"]
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    shutil.rmtree(root / "test")
+    trainer = Namespace(
+        default_root_dir=str(tmp_path / "run"), limit_val_batches=None, check_val_every_n_epoch=1
+    )
+    model = Namespace(net=Namespace(weights=None), eval=Namespace(output_dir=None))
+    cfg = Namespace(
+        trainer=trainer, data=Namespace(root=str(root)), model=model, ckpt_path=None, overwrite=False
+    )
+    cli.check_inputs("fit", cfg)
+    for tar in (root / "validation").glob("*.tar"):
+        tar.unlink()
+    with pytest.raises(cli.UserError, match=f"no shards in {root / 'validation'}"):
+        cli.check_inputs("fit", cfg)
 
 
 @pytest.mark.parametrize(

@@ -145,11 +145,8 @@ class DataModule(L.LightningDataModule):
     # ------------------------------------------------------------------------------------------- loaders
 
     def has_split(self, split: str) -> bool:
-        """Whether the shards hold ``split``: the manifest lists it, or (without one) its folder has tars."""
-        path = self.root / "manifest.json"
-        if path.exists():
-            return split in json.loads(path.read_text()).get("splits", {})
-        return any((self.root / split).glob("*.tar"))
+        """Whether the shards hold ``split`` (see :func:`has_split`)."""
+        return has_split(self.root, split)
 
     def validation_split(self) -> str:
         """The split validation runs on: ``validation`` when the shards have one, else ``test`` (warned)."""
@@ -240,6 +237,15 @@ class _EpochStartLoader(DataLoader):
     def __iter__(self):
         self.on_epoch_start()
         return super().__iter__()
+
+
+def has_split(root: str | Path, split: str) -> bool:
+    """Whether the shards under ``root`` hold ``split``: the manifest lists it, or (without one) its folder
+    has tars."""
+    path = Path(root) / "manifest.json"
+    if path.exists():
+        return split in json.loads(path.read_text()).get("splits", {})
+    return any((Path(root) / split).glob("*.tar"))
 
 
 def find_shards(root: str | Path, split: str) -> list[str]:
