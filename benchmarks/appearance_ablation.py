@@ -134,7 +134,7 @@ def results_from_csv(path: Path) -> dict[Run, dict]:
 def prepare_data(preset: str, work: Path, settings: Settings) -> Path:
     """Generate (once) the preset's chunks and convert them to shards (resumable); returns the shard folder."""
     from aesplat.data import convert_dataset
-    from aesplat.data.rooms import generate_dataset
+    from aesplat.data.synthetic_scenes import generate_dataset
 
     src, shards = work / "src" / preset, work / "shards" / preset
     want = {"preset": preset, "height": settings.size, "train_scenes": settings.scenes,

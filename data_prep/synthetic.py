@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from aesplat.data.rooms import PRESETS, generate_dataset
+from aesplat.data.synthetic_scenes import PRESETS, generate_dataset
 from aesplat.threads import apply_thread_policy
 
 

@@ -99,7 +99,7 @@ def _argv(command: str) -> list[str]:
 def _app_module(subcommand: str):
     if subcommand == "predict":
         return importlib.import_module("aesplat.predict")
-    return importlib.import_module("aesplat.tradeoffs")  # `aesplat bench`: accuracy against time
+    return importlib.import_module("aesplat.bench")  # `aesplat bench`: accuracy against time
 
 
 def _script_commands(text: str) -> list[str]:

@@ -2,7 +2,7 @@
 
     aesplat fit|validate|test -c conf/FILE.yaml [-c conf/OVERLAY.yaml …] [--dotted.key value …]
     aesplat predict …     (aesplat.predict)
-    aesplat bench …       (aesplat.tradeoffs)
+    aesplat bench …       (aesplat.bench)
 
 fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
@@ -429,7 +429,7 @@ def _run_command(command: str, argv: list[str]) -> None:
 
         predict_main(argv[1:])
     elif command == "bench":
-        from aesplat.tradeoffs import main as bench_main
+        from aesplat.bench import main as bench_main
 
         bench_main(argv[1:])
     else:

@@ -16,7 +16,7 @@ import torch
 from PIL import Image
 
 from aesplat.data import DataModule, convert_dataset, verify_shards
-from aesplat.data.rooms import render_scene, sample_scene
+from aesplat.data.synthetic_scenes import render_scene, sample_scene
 from aesplat.data.stream import read_tar
 from aesplat.geometry import project_points, unproject_depth
 

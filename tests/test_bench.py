@@ -11,7 +11,7 @@ from PIL import Image
 
 from aesplat.model import build_model, dataset_cameras
 from aesplat.render import render
-from aesplat.tradeoffs import (
+from aesplat.bench import (
     Bench,
     Point,
     Row,

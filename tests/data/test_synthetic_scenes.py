@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from aesplat.data import rooms
+from aesplat.data import synthetic_scenes
 from aesplat.data.chunks import cameras_to_row, list_chunks, load_chunk, row_to_cameras
-from aesplat.data.rooms import albedo, generate_dataset, render_scene, sample_scene
+from aesplat.data.synthetic_scenes import albedo, generate_dataset, render_scene, sample_scene
 from aesplat.geometry import project_points, unproject_depth
 
 H, W = 40, 56
@@ -21,7 +21,7 @@ def test_diffuse_pixels_equal_texture_lookup_and_never_compute_specular(monkeypa
     def forbidden(*args, **kwargs):
         raise AssertionError("the specular term was evaluated for a scene that does not declare it")
 
-    monkeypatch.setattr(rooms, "specular", forbidden)
+    monkeypatch.setattr(synthetic_scenes, "specular", forbidden)
     scene = sample_scene(11, frames=4, height=H, width=W, effects=("textures",))
     out = render_scene(scene, H, W)
     # Exactly the texture lookup at the hit points.
@@ -40,8 +40,8 @@ def test_diffuse_pixels_equal_texture_lookup_and_never_compute_specular(monkeypa
 
 def test_declared_specular_is_computed(monkeypatch):
     calls = []
-    original = rooms.specular
-    monkeypatch.setattr(rooms, "specular", lambda *a: calls.append(1) or original(*a))
+    original = synthetic_scenes.specular
+    monkeypatch.setattr(synthetic_scenes, "specular", lambda *a: calls.append(1) or original(*a))
     render_scene(sample_scene(2, frames=3, height=8, width=8, effects=("specular",)), 8, 8)
     assert calls
 
@@ -190,7 +190,7 @@ def test_rendered_specular_magnitude_is_the_highlight_term():
     scene = sample_scene(5, frames=6, height=H, width=W, effects=("textures", "specular"), glossy_fraction=1.0)
     out = render_scene(scene, H, W, frames=[0, 5])
     origins = scene.extrinsics[[0, 5], None, None, :3, 3].expand_as(out.points).reshape(-1, 3)
-    term = rooms.specular(scene, out.points.reshape(-1, 3), out.normals.reshape(-1, 3),
+    term = synthetic_scenes.specular(scene, out.points.reshape(-1, 3), out.normals.reshape(-1, 3),
                               out.surface.reshape(-1), origins)  # fmt: skip
     assert torch.allclose(out.specular.reshape(-1), term.amax(-1), atol=1e-6)
     assert (out.specular > 0.05).any()
