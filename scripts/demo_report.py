@@ -32,10 +32,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
+from aesplat.bench import evaluation_scenes  # noqa: E402
 from aesplat.model import forward_batch  # noqa: E402
 from aesplat.predict import LoadedCheckpoint, colorize_depth, load_checkpoint, run_config  # noqa: E402
 from aesplat.render import render  # noqa: E402
-from aesplat.bench import evaluation_scenes  # noqa: E402
 from aesplat.train.metrics import COPY_MEAN, context_copy_psnr, psnr  # noqa: E402
 
 CAMERAS = {"predicted": "*predicted* target cameras", "dataset": "data set's target cameras"}  # model.cameras

@@ -9,8 +9,6 @@ import pytest
 import torch
 from PIL import Image
 
-from aesplat.model import build_model, dataset_cameras
-from aesplat.render import render
 from aesplat.bench import (
     Bench,
     Point,
@@ -23,6 +21,8 @@ from aesplat.bench import (
     resize_views,
     write_report,
 )
+from aesplat.model import build_model, dataset_cameras
+from aesplat.render import render
 from aesplat.train.metrics import psnr
 from aesplat.types import BatchedExample, BatchedViews
 from tests.test_predict import SH_DEGREE, write_tiny_checkpoint

@@ -21,8 +21,8 @@ from PIL import Image
 from aesplat.data import convert_dataset
 from aesplat.data.capture_shards import convert_captures, evaluation_sample
 from aesplat.data.captures import Camera, distorted_pixels, read_colmap, undistort, undistortion_zoom
-from aesplat.data.synthetic_scenes import render_scene, sample_scene, scene_to_chunk_entry
 from aesplat.data.stream import read_tar
+from aesplat.data.synthetic_scenes import render_scene, sample_scene, scene_to_chunk_entry
 
 REPO = Path(__file__).resolve().parents[2]
 H, W = 48, 64

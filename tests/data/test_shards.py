@@ -16,8 +16,8 @@ import torch
 from PIL import Image
 
 from aesplat.data import DataModule, convert_dataset, verify_shards
-from aesplat.data.synthetic_scenes import render_scene, sample_scene
 from aesplat.data.stream import read_tar
+from aesplat.data.synthetic_scenes import render_scene, sample_scene
 from aesplat.geometry import project_points, unproject_depth
 
 H, W = 48, 64  # landscape source: the centre crop keeps columns 8..56

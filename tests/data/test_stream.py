@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from aesplat.data import DataModule, GapCurriculum, flip_views
-from aesplat.data.synthetic_scenes import render_scene, sample_scene
 from aesplat.data.shards import write_tar
 from aesplat.data.stream import read_tar, sample_keys
+from aesplat.data.synthetic_scenes import render_scene, sample_scene
 from aesplat.geometry import project_points, unproject_depth
 
 from .conftest import SIZE

@@ -7,9 +7,9 @@ from typing import TYPE_CHECKING
 
 from .capture_shards import convert_captures
 from .curriculum import GapCurriculum
-from .synthetic_scenes import generate_dataset, render_scene, sample_scene
 from .shards import convert_dataset, verify_shards
 from .stream import flip_views
+from .synthetic_scenes import generate_dataset, render_scene, sample_scene
 
 if TYPE_CHECKING:
     from .datamodule import DataModule
