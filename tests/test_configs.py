@@ -109,7 +109,7 @@ def test_demo_from_scratch_is_the_demo_from_a_random_start(parsed):
         demo["model"]["net"]["weights"] == "weights/demo-warmstart.pt"
         and scratch["model"]["net"]["weights"] is None
     )
-    assert scratch["model"]["net"]["options"] == {}  # the overlay's empty dict replaces the correlation branch
+    assert scratch["model"]["net"]["options"]["camera_correlation"] is False  # no correlation branch
     assert (scratch["model"]["optim"]["lr"], scratch["model"]["optim"]["appearance_lr"]) == (5e-4, 1e-3)
     assert differences(demo, scratch) == {
         "trainer.default_root_dir", "model.net.weights", "model.net.options.camera_correlation",
