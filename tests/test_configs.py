@@ -191,4 +191,4 @@ def test_configs_without_removed_keys_pass_the_check():
 def test_unknown_render_option_is_named_with_the_known_ones():
     with pytest.raises(ValueError, match=r"model.render.options: unknown key\(s\) \['tile_sise'\].*tile_size"):
         RasterizerConfig(options={"tile_sise": 8})
-    assert RasterizerConfig(options={"tile_size": 16}).options == {"tile_size": 16}
+    assert RasterizerConfig(options={"tile_size": 16}).options.tile_size == 16

@@ -74,8 +74,14 @@ def remove_partials(folder: str | Path) -> list[Path]:
     return found
 
 
-def _holds(folder: Path, path: Path) -> bool:
-    return path == folder or folder in path.parents
+def _forms(path: str | Path) -> set[Path]:
+    """A path as written (absolute, normalised) and as it resolves (links followed)."""
+    return {Path(os.path.abspath(path)), Path(path).resolve()}
+
+
+def _holds(folder: str | Path, path: str | Path) -> bool:
+    """Whether ``folder`` is or contains ``path``, either as written or with links followed."""
+    return any(p == f or f in p.parents for f in _forms(folder) for p in _forms(path))
 
 
 Inputs = Iterable[tuple[str, "str | Path | None"]]  # (how the command names it, path) of what it reads
@@ -84,22 +90,20 @@ Inputs = Iterable[tuple[str, "str | Path | None"]]  # (how the command names it,
 def check_deletable(folder: str | Path, flag: str, inputs: Inputs = ()) -> None:
     """Refuse (UserError) to delete ``folder`` when it is or holds the file system root, the current folder,
     the home folder, or one of ``inputs`` (the files and folders the command reads, each with the option
-    that names it). Symbolic links are followed: what is checked is what would be deleted."""
+    that names it): as the paths are written, and with symbolic links followed."""
     target = Path(folder).resolve()
-    cwd, home = Path.cwd().resolve(), Path.home().resolve()
-    if target == Path(target.anchor) or _holds(target, cwd):
-        raise UserError(
-            f"{flag} will not delete {target}: it holds the current folder; give a folder of its own"
-        )
-    if _holds(target, home):
-        raise UserError(f"{flag} will not delete {target}: it holds your home folder; give a folder of its own")
+    refusal = f"{flag} will not delete {target}: it holds"
+    if target == Path(target.anchor) or _holds(folder, Path.cwd()):
+        raise UserError(f"{refusal} the current folder; give a folder of its own")
+    if _holds(folder, Path.home()):
+        raise UserError(f"{refusal} your home folder; give a folder of its own")
     for name, value in inputs:
         if value is None or str(value) == "":
             continue
-        if _holds(target, Path(value).resolve()):
+        if _holds(folder, value):
             raise UserError(
-                f"{flag} will not delete {target}: it holds {name} {value}, an input of this command; move "
-                "that input out of it, or give another folder"
+                f"{refusal} {name} {value}, an input of this command; move that input out of it, or give "
+                "another folder"
             )
 
 

@@ -114,10 +114,9 @@ def read_torch_file(path: str | Path, what: str) -> object:
 
 
 def _refused_by_safe_loader(err: Exception) -> bool:
-    """Whether torch's safe loader refused a class or function the file names (torch words it "Weights only
-    load failed", then "Unsupported global" or "unsupported GLOBAL"), as opposed to a damaged file."""
-    text = str(err).lower()
-    return isinstance(err, pickle.UnpicklingError) and ("weights only load failed" in text or "global" in text)
+    """Whether torch's safe loader refused a class or function the file names (torch writes "Unsupported
+    global" or "unsupported GLOBAL"), as opposed to bytes it cannot read at all ("Unsupported operand")."""
+    return isinstance(err, pickle.UnpicklingError) and "global" in str(err).lower()
 
 
 def _starts_like_zip(path: Path) -> bool:
