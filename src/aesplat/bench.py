@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from torch import Tensor
 from tqdm import tqdm
 
-from .commands import HelpFormatter, resolve_device
+from .commands import HelpFormatter, OneLineParser, resolve_device
 from .errors import UserError
 from .export import drop_transparent, keep_most_opaque
 from .model import forward_batch
@@ -546,7 +546,7 @@ def _names(text: str) -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="aesplat bench",
         description="Accuracy versus time: sweep every quality knob of a trained model on evaluation scenes "
         "and write tables (markdown, CSV) and a plot of PSNR/SSIM against milliseconds.",

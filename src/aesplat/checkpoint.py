@@ -45,6 +45,8 @@ CHECKPOINT_GLOBS = ("checkpoints/*.ckpt", "hpc_ckpt_*.ckpt")
 def read_checkpoint(path: str | Path, flag: str = "--ckpt_path") -> dict:
     """A Lightning checkpoint of ``aesplat fit``, loaded safely on the CPU; UserError (one line) otherwise."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{flag} {path} is a folder: give a checkpoint file, e.g. RUN/checkpoints/last.ckpt")
     if not path.is_file():
         raise MissingFileError(f"{flag} {path} does not exist: give RUN/checkpoints/last.ckpt of `aesplat fit`")
     ckpt = read_torch_file(path, "checkpoint")
@@ -253,9 +255,12 @@ def resolve_ckpt_path(value: str, run_dir: str | Path, monitor: str = "val/psnr"
     user about checkpoints that were skipped."""
     if value == "last":
         found, skipped = resume_checkpoint(run_dir)
+        if found is None and skipped:  # never a fresh start over checkpoints that are there but damaged
+            raise UserError(
+                f"--ckpt_path last: no checkpoint of {run_dir} loads ({skipped[0]}); move the damaged files "
+                "away to start afresh, or --overwrite"
+            )
         if found is None and not fresh_if_none:
-            if skipped:
-                raise UserError(f"--ckpt_path last: no checkpoint of {run_dir} loads ({skipped[0]})")
             raise MissingFileError(f"--ckpt_path last: {run_dir} holds no checkpoint (give the run's folder as "
                                    "--trainer.default_root_dir, or a checkpoint file)")  # fmt: skip
         return found, skipped

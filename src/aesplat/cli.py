@@ -171,7 +171,7 @@ def _lightning_cli():
             if asked:
                 if sub == "fit" and asked == "last" and cfg.overwrite:
                     raise UserError("--overwrite deletes the run that --ckpt_path last would resume: give one")
-                if asked not in ("last", "best") and not Path(asked).is_file():
+                if asked not in ("last", "best") and not Path(asked).exists():
                     resume = ", or `--ckpt_path last` to resume the run in --trainer.default_root_dir"
                     raise MissingFileError(
                         f"--ckpt_path {asked} does not exist: give RUN/checkpoints/last.ckpt of `aesplat fit`"
@@ -204,10 +204,13 @@ def _lightning_cli():
             settings = checked_hparams(ckpt, path, checkpoint_sections())
             settings.pop("eval", None)  # where and what an evaluation writes is the command's
             sections = checkpoint_sections()
-            model = {  # each section whole (the defaults of this version where the checkpoint predates a key)
-                name: value if name == "cameras" else asdict(sections[name](**value))
-                for name, value in settings.items()
-            }
+            try:  # each section whole (the defaults of this version where the checkpoint predates a key)
+                model = {
+                    name: value if name == "cameras" else asdict(sections[name](**value))
+                    for name, value in settings.items()
+                }
+            except (TypeError, ValueError) as err:
+                raise UserError(f"checkpoint {path}: {err}") from None
             if model:
                 self.parser.exit_on_error = False
                 try:
