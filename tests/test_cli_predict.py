@@ -68,6 +68,17 @@ def test_overwrite_never_deletes_a_folder_holding_the_inputs_or_the_current_fold
     code, line = predict(capsys, "--ckpt", str(ckpt_inside), "--out", str(out), "--overwrite", *elsewhere)
     assert code == 1 and "it holds --ckpt" in line
     assert (out / "notes.txt").read_text() == "the user's"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    monkeypatch.chdir(empty)  # an empty --out is replaced as a whole too: never the folder the user is in
+    code, line = predict(capsys, "--ckpt", str(ckpt), "--out", ".", *elsewhere)
+    assert (
+        code == 1
+        and line
+        == f"aesplat predict: --out will not delete {empty}: it holds the current folder; "
+        "give a folder of its own"
+    )
+    assert empty.is_dir()
 
 
 STOPPED = textwrap.dedent(

@@ -192,18 +192,16 @@ def _lightning_cli():
                         verb = "resuming from" if sub == "fit" else f"--ckpt_path {asked}:"
                         print(f"{verb} {path} (step {step})" + (", the newest that loads" if skipped else ""))
                 self.config[sub].ckpt_path = None if path is None else str(path)
-            cfg = self.config[sub]
-            check_config(sub, cfg)
-            check_inputs(
-                sub, cfg, resuming=bool(asked)
-            )  # before the seed is set: a refusal prints nothing else
+            # Before the seed is set: a refusal prints nothing else.
+            check_config(sub, self.config[sub])
+            check_inputs(sub, self.config[sub], resuming=bool(asked))
 
         def _take_model_from_checkpoint(self, sub: str, ckpt: dict, path: Path) -> None:
             """The checkpoint's checked model settings replace the command's; name the flags they override."""
             before = self.config[sub].clone()
-            settings = checked_hparams(ckpt, path, checkpoint_sections())
-            settings.pop("eval", None)  # where and what an evaluation writes is the command's
             sections = checkpoint_sections()
+            settings = checked_hparams(ckpt, path, sections)
+            settings.pop("eval", None)  # where and what an evaluation writes is the command's
             try:  # each section whole (the defaults of this version where the checkpoint predates a key)
                 model = {
                     name: value if name == "cameras" else asdict(sections[name](**value))

@@ -363,12 +363,12 @@ def check_output_dir(out: Path, overwrite: bool, inputs: Inputs = ()) -> None:
     of the command's ``inputs``), or a place without write permission."""
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file, not a folder; give a folder path")
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise UserError(
-                f"--out {out} is not empty; give a new folder, or --overwrite to replace it (as a whole)"
-            )
-        check_deletable(out, "--overwrite", inputs)
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise UserError(
+            f"--out {out} is not empty; give a new folder, or --overwrite to replace it (as a whole)"
+        )
+    if out.is_dir():  # it is replaced as a whole, even empty
+        check_deletable(out, "--overwrite" if overwrite else "--out", inputs)
     check_writable(out.resolve().parent, f"--out {out}")  # the folder is renamed into place beside it
 
 
