@@ -30,7 +30,9 @@ import torch
 from torch import Tensor
 
 from .errors import MissingFileError, UserError
+from .model import CameraSource, NetConfig
 from .model.weights import KIND_NAMES, checkpoint_kind, read_torch_file
+from .render import RasterizerConfig
 
 # Keys by which a configuration names a class to instantiate (jsonargparse, Lightning, Hydra).
 CLASS_KEYS = frozenset({"class_path", "init_args", "dict_kwargs", "_class_path", "_target_", "__class__"})
@@ -168,8 +170,6 @@ def checked_hparams(ckpt: dict, path: str | Path, sections: dict[str, Any]) -> d
 def checkpoint_sections() -> dict[str, Any]:
     """The typed sections of a training checkpoint's hyper-parameters: those of the module's ``model``
     config section, ``model.eval`` included (the command's own, never taken from a checkpoint)."""
-    from .model import CameraSource, NetConfig
-    from .render import RasterizerConfig
     from .train.evaluation import EvalConfig
     from .train.loss import LossConfig
     from .train.optim import OptimConfig
@@ -287,7 +287,7 @@ class LoadedCheckpoint:
 
     model: torch.nn.Module
     net: dict
-    render: Any  # RasterizerConfig
+    render: RasterizerConfig
     data: dict | None
     path: Path
     image_size: int | None = None
@@ -344,9 +344,6 @@ def load_checkpoint(
     file (the trained weights come from the checkpoint), then the ``model.*`` entries of the state dict are
     loaded strictly.
     """
-    from .model import CameraSource, NetConfig
-    from .render import RasterizerConfig
-
     path = Path(path)
     ckpt = read_checkpoint(path, flag)
     hparams = checked_hparams(

@@ -279,14 +279,19 @@ def _lightning_cli():
             return trainer
 
         def after_fit(self) -> None:
-            if self.signals.stop_signal is None:
+            """A fit a signal stopped ends with 128 + the signal, saying where it stopped and what it saved."""
+            signum = self.signals.stop_signal
+            if signum is None:
                 return
-            last = self.trainer.checkpoint_callbacks
-            saved = [c.last_model_path for c in last if getattr(c, "last_model_path", "")]
+            saved = [
+                c.last_model_path
+                for c in self.trainer.checkpoint_callbacks
+                if getattr(c, "last_model_path", "")
+            ]
             where = f"saved {saved[-1]}" if saved else "nothing to save yet"
-            raise Stopped(self.signals.stop_signal,
-                          f"stopped by {signal_name(self.signals.stop_signal)} after step "
-                          f"{self.signals.stopped_at}; {where}: resume with --ckpt_path last")  # fmt: skip
+            step = self.trainer.global_step
+            raise Stopped(signum, f"stopped by {signal_name(signum)} after step {step}; {where}: resume with "
+                          "--ckpt_path last")  # fmt: skip
 
         def after_test(self) -> None:
             self._point_latest()
