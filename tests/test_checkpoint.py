@@ -3,8 +3,8 @@ refused, hyper-parameters are checked against the typed settings, `last` falls b
 that loads, `best` is the best validation score, and the image size travels with the checkpoint."""
 
 import os
-import re
 import pickle
+import re
 from pathlib import Path
 
 import pytest
@@ -64,9 +64,9 @@ def test_hyper_parameters_that_name_a_class_are_refused(tiny, tmp_path, changes,
 @pytest.mark.parametrize(
     "changes, message",
     [
-        ({"net": {"sh_degree": "2"}}, r"net.sh_degree is '2', not a int"),
+        ({"net": {"sh_degree": "2"}}, r"net.sh_degree is '2', not of type int"),
         ({"net": {"options": {"unknown": 1}}}, r"net.options.unknown is not a setting of this version"),
-        ({"render": {"background": [0, 0]}}, r"render.background is \[0, 0\], not a tuple"),
+        ({"render": {"background": [0, 0]}}, r"render.background is \[0, 0\], not of type tuple"),
         ({"cameras": "oracle"}, r"cameras is 'oracle', not one of 'predicted', 'dataset'"),
     ],
 )

@@ -110,24 +110,23 @@ def _check_value(value: Any, annotation: Any, where: str) -> None:
             _check_value(item, hints[key], f"{where}.{key}")
         return
     if origin in (Union, types.UnionType):
-        errors = []
         for option in args:
             try:
                 _check_value(value, option, where)
                 return
-            except ValueError as err:
-                errors.append(err)
-        raise ValueError(f"{where} is {value!r}, not a {_type_words(annotation)}")
+            except ValueError:
+                continue
+        raise ValueError(f"{where} is {value!r}, not of type {_type_words(annotation)}")
     if origin is Literal:
         if value not in args:
             raise ValueError(f"{where} is {value!r}, not one of {', '.join(map(repr, args))}")
         return
     if origin in (tuple, list):
         if not isinstance(value, (tuple, list)):
-            raise ValueError(f"{where} is {value!r}, not a {_type_words(annotation)}")
+            raise ValueError(f"{where} is {value!r}, not of type {_type_words(annotation)}")
         items = args[:1] * len(value) if origin is list or (len(args) == 2 and args[1] is Ellipsis) else args
         if len(items) != len(value):
-            raise ValueError(f"{where} is {value!r}, not a {_type_words(annotation)}")
+            raise ValueError(f"{where} is {value!r}, not of type {_type_words(annotation)}")
         for i, (item, item_type) in enumerate(zip(value, items)):
             _check_value(item, item_type, f"{where}[{i}]")
         return
@@ -140,7 +139,7 @@ def _check_value(value: Any, annotation: Any, where: str) -> None:
     }
     if annotation in plain and plain[annotation](value):
         return
-    raise ValueError(f"{where} is {value!r}, not a {_type_words(annotation)}")
+    raise ValueError(f"{where} is {value!r}, not of type {_type_words(annotation)}")
 
 
 def checked_hparams(ckpt: dict, path: str | Path, sections: dict[str, Any]) -> dict[str, Any]:
