@@ -6,9 +6,6 @@ its first checkpoint leaves nothing behind, and a fit stopped by a signal saves 
 
 import os
 import signal
-import subprocess
-import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -18,6 +15,7 @@ from aesplat import cli
 from aesplat.train import AESplatModule
 from tests.test_cli_errors import aesplat, common, one_line, shards  # noqa: F401 - the fixture
 from tests.test_predict import write_tiny_checkpoint
+from tests.train.test_run_dir import hold_lock
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 
@@ -82,30 +80,17 @@ def test_overwrite_never_deletes_an_input_inside_the_run_folder(shards, capsys, 
     assert tree(run) == before
 
 
-HOLDER = textwrap.dedent(
-    """
-    import sys
-    from aesplat.train.run_dir import lock_run
-    lock_run(sys.argv[1])
-    print("locked", flush=True)
-    sys.stdin.read()
-    """
-)
-
-
 def test_a_second_resume_of_a_run_in_training_is_refused(run, shards, capsys):  # noqa: F811
-    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(run)], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)  # fmt: skip
+    holder, conn = hold_lock(run)
     try:
-        assert holder.stdout.readline().strip() == "locked"
         before = tree(run)
         code, err = aesplat(capsys, "fit", *common(shards, run), "--ckpt_path", "last")
         line = one_line(err, after_start=True)
         assert code == 1 and line.startswith(f"aesplat fit: {run.resolve()} is in use: aesplat fit (pid "), line
         assert tree(run) == before
     finally:
-        holder.stdin.close()
-        holder.wait(timeout=60)
+        conn.send_bytes(b"done")
+        holder.join(timeout=60)
 
 
 @pytest.mark.parametrize(

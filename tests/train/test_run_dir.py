@@ -1,9 +1,8 @@
 """Run directories: the wandb run id is fixed per directory, wandb mode, one fit at a time (the lock), and a fit
 that stops before its first checkpoint takes back what it wrote."""
 
-import subprocess
-import sys
-import textwrap
+import multiprocessing
+from pathlib import Path
 
 import pytest
 
@@ -27,30 +26,32 @@ def test_wandb_mode_environment_wins(monkeypatch):
     assert wandb_mode("auto", host="192.0.2.1", timeout=0.2) == "offline"
 
 
-HOLDER = textwrap.dedent(
-    """
-    import sys
-    from aesplat.train.run_dir import lock_run
-    lock_run(sys.argv[1])
-    print("locked", flush=True)
-    sys.stdin.read()  # holds the lock until the test closes its stdin
-    """
-)
+def hold_lock(run: Path):
+    """A forked process that holds ``run``'s lock until the returned connection is closed (fork: no imports)."""
+    context = multiprocessing.get_context("fork")
+    here, there = context.Pipe()
+
+    def hold(conn) -> None:
+        lock_run(run)
+        conn.send("locked")
+        conn.poll(120)  # until the test says it is done (or two minutes)
+
+    process = context.Process(target=hold, args=(there,), daemon=True)
+    process.start()
+    assert here.recv() == "locked"
+    return process, here
 
 
 def test_a_second_fit_in_a_run_folder_is_refused_while_the_first_trains(tmp_path):
     run = tmp_path / "run"
-    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(run)], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)  # fmt: skip
+    holder, conn = hold_lock(run)
     try:
-        assert holder.stdout.readline().strip() == "locked"
-        with pytest.raises(
-            UserError, match=rf"{run} is in use: aesplat fit \(pid {holder.pid} on .*\) is training"
-        ):
+        holder_line = rf"aesplat fit \(pid {holder.pid} on .*\) is training there"
+        with pytest.raises(UserError, match=rf"{run} is in use: {holder_line}"):
             lock_run(run)
     finally:
-        holder.stdin.close()
-        holder.wait(timeout=60)
+        conn.send_bytes(b"done")
+        holder.join(timeout=60)
     lock_run(run)  # the first has ended: its lock went with it
     unlock_run(run)
 
