@@ -2,12 +2,13 @@
 exits with 128 + its number, after the cleanups ran."""
 
 import errno
+import multiprocessing
 import os
 import signal
 
 import pytest
 
-from aesplat.errors import UserError, os_error_line, run_reporting_user_errors
+from aesplat.errors import UserError, os_error_line, run_reporting_user_errors, stopping_on_signals
 
 
 def ends(fn, capsys) -> tuple[int, str]:
@@ -64,3 +65,25 @@ def test_a_signal_runs_the_cleanups_and_exits_128_plus_its_number(signum, capsys
         [True],
     )
     assert signal.getsignal(signum) in (signal.SIG_DFL, signal.default_int_handler)  # handlers restored
+
+
+def test_a_forked_worker_ignores_a_stop_signal_the_main_process_acts_on():
+    """A data-loader worker inherits the handlers: a signal sent to the whole process group (Ctrl-C, SLURM)
+    must leave it running, for the main process to stop it when the step is over."""
+    context = multiprocessing.get_context("fork")
+
+    def worker(conn) -> None:
+        for signum in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            os.kill(os.getpid(), signum)
+        conn.send("still running")
+
+    def main() -> None:
+        here, there = context.Pipe()
+        child = context.Process(target=worker, args=(there,))
+        child.start()
+        assert here.poll(30) and here.recv() == "still running"
+        child.join(timeout=30)
+        assert child.exitcode == 0
+
+    with stopping_on_signals():
+        main()

@@ -97,24 +97,33 @@ def os_error_line(err: OSError) -> str:
     return f"{where}{words}" + (f" ({hint})" if hint else "")
 
 
+def in_this_process_only(handler: Callable[[int, object], None]) -> Callable[[int, object], None]:
+    """``handler`` for this process; in a process forked from it later (a data-loader worker, which inherits
+    Python's signal handlers) the signal is ignored: the main process stops its workers itself, and a worker
+    that died on a signal sent to the whole process group (Ctrl-C, SLURM) would break the batch the main
+    process is still waiting for."""
+    pid = os.getpid()
+
+    def only_here(signum: int, frame: object) -> None:
+        if os.getpid() == pid:
+            handler(signum, frame)
+
+    return only_here
+
+
+def _raise_stopped(signum: int, frame: object) -> None:
+    raise Stopped(signum)
+
+
 @contextmanager
 def stopping_on_signals() -> Iterator[None]:
     """SIGTERM, SIGINT and SIGHUP raise :class:`Stopped` in this process's main thread while the block runs
     (so ``finally`` blocks and staging cleanups run, where SIGTERM's default would kill the process on the
-    spot). Processes forked meanwhile (data-loader workers) keep the default behaviour."""
+    spot); processes forked meanwhile ignore them (:func:`in_this_process_only`)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    pid = os.getpid()
-
-    def handler(signum: int, frame: object) -> None:
-        if os.getpid() == pid:
-            raise Stopped(signum)
-        if signum == signal.SIGINT:  # a forked worker: what it would have done without this handler
-            raise KeyboardInterrupt
-        signal.signal(signum, signal.SIG_DFL)
-        os.kill(os.getpid(), signum)
-
+    handler = in_this_process_only(_raise_stopped)
     previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS}
     try:
         yield

@@ -21,7 +21,6 @@ and the ranks wait there for SLURM's SIGTERM instead of training steps that the 
 
 from __future__ import annotations
 
-import os
 import signal
 import sys
 import threading
@@ -33,7 +32,7 @@ from lightning.pytorch import Callback, LightningModule, Trainer
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
-from aesplat.errors import STOP_SIGNALS, Stopped, signal_name
+from aesplat.errors import STOP_SIGNALS, Stopped, in_this_process_only, signal_name
 
 REQUEUE_SIGNAL = signal.SIGUSR1  # Lightning's SLURMEnvironment default; slurm/train.sbatch asks for it
 
@@ -60,7 +59,6 @@ class SignalsAtStepBoundary(Callback):
         self.stop_signal: int | None = None
         self.stopped_at: int | None = None
         self._previous: dict[int, object] = {}
-        self._pid = os.getpid()
         self._forward = None  # passes a stop signal on to the ranks Lightning started from this process
 
     # ----------------------------------------------------------------------------------------- set-up
@@ -81,10 +79,10 @@ class SignalsAtStepBoundary(Callback):
     def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
         if threading.current_thread() is not threading.main_thread():
             return
-        self._pid = os.getpid()
         launcher = trainer.strategy.launcher
         self._forward = getattr(launcher, "kill", None) if launcher is not None else None
-        self._previous = {s: signal.signal(s, self._on_stop_signal) for s in STOP_SIGNALS}
+        handler = in_this_process_only(self._on_stop_signal)
+        self._previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS}
 
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         self._restore()
@@ -98,12 +96,6 @@ class SignalsAtStepBoundary(Callback):
         self._previous = {}
 
     def _on_stop_signal(self, signum: int, frame: object) -> None:
-        if os.getpid() != self._pid:  # a forked data-loader worker: the default behaviour
-            if signum == signal.SIGINT:
-                raise KeyboardInterrupt
-            signal.signal(signum, signal.SIG_DFL)
-            os.kill(os.getpid(), signum)
-            return
         if self.stop_signal is not None:
             raise Stopped(signum, f"stopped by a second {signal_name(signum)}, without saving")
         self.stop_signal = signum
