@@ -1,0 +1,50 @@
+"""A tiny prediction of ``aesplat predict`` with strong view-dependent colour, for the export and viewer tests.
+
+The checkpoint is a random-initialised tiny model (28 x 28 inputs, SH degree 2) whose view-dependent head's
+output layer is scaled up: its higher SH bands then change colours by tenths, so renders at SH degree 0 and at
+degree 2 differ visibly. The two input images are red and blue halves, so every Gaussian is red or blue.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from tests.test_predict import IMAGE_SIZE, SH_DEGREE, write_tiny_checkpoint
+
+HEAD_OUTPUT = "model.appearance.view_dependent_head.net.7.weight"
+RED, BLUE = (220, 30, 30), (30, 30, 220)
+
+__all__ = ["IMAGE_SIZE", "SH_DEGREE", "make_prediction", "split_image", "write_view_dependent_checkpoint"]
+
+
+def write_view_dependent_checkpoint(run_dir: Path, gain: float = 100.0) -> Path:
+    ckpt = write_tiny_checkpoint(run_dir)
+    state = torch.load(ckpt, weights_only=False)
+    state["state_dict"][HEAD_OUTPUT] = state["state_dict"][HEAD_OUTPUT] * gain
+    torch.save(state, ckpt)
+    return ckpt
+
+
+def split_image(path: Path, boundary: int, size: int = IMAGE_SIZE) -> Path:
+    """A size x size PNG: red left of column ``boundary``, blue from it on."""
+    img = np.empty((size, size, 3), np.uint8)
+    img[:, :boundary] = RED
+    img[:, boundary:] = BLUE
+    Image.fromarray(img).save(path)
+    return path
+
+
+def make_prediction(root: Path, *extra: str) -> tuple[Path, Path, list[Path]]:
+    """Run ``aesplat predict`` on two split images -> (prediction folder, checkpoint, images)."""
+    from aesplat.predict import main
+
+    ckpt = write_view_dependent_checkpoint(root / "run")
+    images = [split_image(root / "left.png", 12), split_image(root / "right.png", 16)]
+    out = root / "pred"
+    argv = ["--ckpt", str(ckpt), "--out", str(out), "--novel-frames", "4", "--no-progress", "--threads", "2"]
+    assert main([*argv, *extra, *map(str, images)]) == 0
+    return out, ckpt, images
