@@ -1,5 +1,6 @@
 """``aesplat view`` in a real browser (headless Chromium), its command line, and its one-line refusals."""
 
+import importlib.util
 import io
 import json
 import os
@@ -25,9 +26,13 @@ IN_CI = os.environ.get("CI", "").lower() in ("1", "true")
 
 
 def need(available: bool, what: str) -> None:
-    """Skip without ``what`` on a developer's machine; fail in CI, which installs it (.ci/run)."""
+    """Skip without ``what`` on a developer's machine; fail in CI, which installs it (Makefile, .ci/run)."""
     if not available:
         (pytest.fail if IN_CI else pytest.skip)(f"{what} is not installed")
+
+
+def need_viser() -> None:
+    need(importlib.util.find_spec("viser") is not None, 'viser (pip install -e ".[viewer]")')
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +77,7 @@ def canvas_pixels(shot: bytes, page: "browser.Chromium") -> np.ndarray:
 
 
 def test_viewer_in_headless_chromium(prediction):
-    pytest.importorskip("viser") if not IN_CI else None
+    need_viser()
     need(browser.find_chromium() is not None, "Chromium (apt-get install chromium)")
     from aesplat.view import scene_from_path
     from aesplat.view.app import Viewer, ViewerOptions
@@ -125,7 +130,7 @@ def test_viewer_in_headless_chromium(prediction):
 
 
 def test_command_prints_its_url_serves_and_stops_on_sigint(prediction):
-    pytest.importorskip("viser") if not IN_CI else None
+    need_viser()
     proc = subprocess.Popen([sys.executable, "-m", "aesplat.cli", "view", str(prediction), "--port", "0"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
     try:
@@ -155,7 +160,7 @@ def refusal(argv, capsys) -> str:
 
 
 def test_a_port_in_use_is_one_line(prediction, capsys):
-    pytest.importorskip("viser") if not IN_CI else None
+    need_viser()
     before = snapshot(prediction)
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -170,7 +175,7 @@ def test_a_port_in_use_is_one_line(prediction, capsys):
 
 
 def test_bad_inputs_are_one_line_and_write_nothing(tmp_path, capsys):
-    pytest.importorskip("viser") if not IN_CI else None
+    need_viser()
     (tmp_path / "empty").mkdir()
     assert "holds no prediction (no cameras.json, gaussians.ply, inputs)" in refusal(
         [str(tmp_path / "empty")], capsys
@@ -185,11 +190,9 @@ def test_bad_inputs_are_one_line_and_write_nothing(tmp_path, capsys):
 
 
 def test_a_missing_viewer_extra_is_one_line(prediction, capsys, monkeypatch):
-    import importlib.util
-
     real = importlib.util.find_spec
     monkeypatch.setattr(
         importlib.util, "find_spec", lambda name, *a: None if name == "viser" else real(name, *a)
     )
     message = refusal([str(prediction)], capsys)
-    assert message == 'aesplat view: aesplat view needs the viewer extra: pip install -e ".[viewer]"'
+    assert message == 'aesplat view: the viewer extra is not installed: pip install -e ".[viewer]"'

@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
 def require_viewer_extra() -> None:
     """One line naming the install command when viser (the `viewer` extra) is missing."""
     if importlib.util.find_spec("viser") is None:
-        raise UserError(f"aesplat view needs the viewer extra: {VIEWER_EXTRA}")
+        raise UserError(f"the viewer extra is not installed: {VIEWER_EXTRA}")
 
 
 def start_viewer(args: argparse.Namespace):
@@ -81,10 +81,10 @@ def main(argv: list[str] | None = None) -> int:
 
     def run() -> int:
         viewer = start_viewer(args)
-        print(f"aesplat view: {viewer.url}  ({viewer.scene.source}; Ctrl-C to stop)", flush=True)
         done = threading.Event()
         previous = signal.signal(signal.SIGTERM, lambda *_: done.set())
-        try:
+        try:  # from here on, Ctrl-C (or SIGTERM) stops the viewer cleanly
+            print(f"aesplat view: {viewer.url}  ({viewer.scene.source}; Ctrl-C to stop)", flush=True)
             done.wait()
         except KeyboardInterrupt:
             pass

@@ -65,20 +65,18 @@ def _uint8(image: Tensor) -> np.ndarray:
     return (image.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
 
 
+def _read_rgb(path: Path) -> np.ndarray:
+    with Image.open(path) as image:
+        return np.asarray(image.convert("RGB"))
+
+
 def scene_from_path(path: str | Path) -> ViewScene:
     """A prediction folder or a 3DGS ``.ply`` file; anything else is one UserError."""
     path = Path(path)
     if path.is_dir():
         pred = read_prediction(path)
         cameras = [
-            ViewCamera(
-                name,
-                np.asarray(Image.open(img).convert("RGB")),
-                pred.extrinsics[i],
-                pred.intrinsics[i],
-                pred.width,
-                pred.height,
-            )  # fmt: skip
+            ViewCamera(name, _read_rgb(img), pred.extrinsics[i], pred.intrinsics[i], pred.width, pred.height)
             for i, (name, img) in enumerate(zip(pred.names, pred.images))
         ]
         return ViewScene(pred.gaussians, cameras, pred.novel_extrinsics, pred.novel_intrinsics, pred.background,
@@ -130,6 +128,6 @@ def scene_from_checkpoint(
         ViewCamera(Path(p).stem, _uint8(pixels[i]), ext[i], intr[i], size, size) for i, p in enumerate(images)
     ]
     path_ext, path_int = interpolate_cameras(ext, intr, path_frames)
-    options = {k: v for k, v in loaded.render.get("options", {}).items()}
+    options = dict(loaded.render.get("options", {}))
     return ViewScene(pred.gaussians.to("cpu"), cameras, path_ext, path_int, background, options,
                      source=f"{Path(ckpt).name} on {len(images)} images")  # fmt: skip
