@@ -79,8 +79,8 @@ def canvas_pixels(shot: bytes, page: "browser.Chromium") -> np.ndarray:
 def test_viewer_in_headless_chromium(prediction):
     need_viser()
     need(browser.find_chromium() is not None, "Chromium (apt-get install chromium)")
-    from aesplat.view import scene_from_path
-    from aesplat.view.app import Viewer, ViewerOptions
+    from aesplat.view import render_viewpoint, scene_from_path
+    from aesplat.view.app import Viewer, ViewerOptions, to_uint8
 
     before = snapshot(prediction)
     scene = scene_from_path(prediction)
@@ -104,17 +104,48 @@ def test_viewer_in_headless_chromium(prediction):
             assert (red > blue + 60).mean() > 0.2 and (blue > red + 60).mean() > 0.2  # both halves
             # red, blue, and their blends with each other and the background: green never leads
             assert (green <= np.minimum(red, blue) + 12).mean() > 0.98
+            # what "Save screenshot" sends in the fast mode: the browser's own render of the view
+            client = next(iter(fast.clients.values())).client
+            shot = client.get_render(250, 500, transport_format="png", timeout=30)[..., :3].reshape(-1, 3)
+            assert shot.shape == (250 * 500, 3) and (np.abs(shot.astype(int) - RED).sum(1) < 60).any()
 
             # exact mode: the server's render fills the canvas, the browser shows it pixel for pixel
             page.open(exact.url)
             session = wait_for(lambda: next(iter(exact.clients.values()), None), 60, "the page to connect")
-            wait_for(lambda: session.exact_renders > 0, 60, "an exact render")
-            time.sleep(1.0)
-            pixels, image, keep = canvas_pixels(page.screenshot(), page)
+
+            def exact_shown():  # a screenshot taken while one exact image stayed on the page
+                wait_for(lambda: session.showing_exact, 60, "an exact render")
+                renders = session.exact_renders
+                time.sleep(1.0)  # decoded and drawn
+                shot = page.screenshot()
+                return shot if session.showing_exact and session.exact_renders == renders else None
+
+            pixels, image, keep = canvas_pixels(wait_for(exact_shown, 120, "a steady exact image"), page)
             shown = np.asarray(Image.fromarray(session.last_exact).resize(image.shape[1::-1], Image.BILINEAR))
             diff = np.abs(image - shown.astype(int))[keep]
             assert np.median(diff) <= 3 and (diff.max(1) > 40).mean() < 0.02, (np.median(diff), diff.max())
             assert session.viewpoint().aspect == pytest.approx(1000 / 500, rel=0.02)
+
+            # "Go to camera": the browser takes input camera 1's pose and field of view and reports it back;
+            # the exact image of that view (2:1, square pixels) holds predict's render of camera 1 in its middle
+            target = session.views[1]
+
+            def at(view) -> bool:
+                now = session.viewpoint()
+                turned = abs(float(np.dot(now.wxyz, view.wxyz)))
+                return np.allclose(now.position, view.position, atol=1e-5) and turned > 1 - 1e-9
+
+            session.go_to(target)
+            wait_for(lambda: at(target), 30, "the browser's camera at input camera 1")
+            h = scene.cameras[1].height
+            image = to_uint8(render_viewpoint(scene, session.viewpoint(), h, sh_degree=scene.sh_degree))
+            assert image.shape == (h, 2 * h, 3)
+            saved = np.asarray(Image.open(prediction / "renders" / f"01_{scene.cameras[1].name}.png"))
+            assert np.abs(image[:, h // 2 : h // 2 + h].astype(int) - saved).max() <= 1
+            # "Play path" ends at the path's last frame; "Save screenshot" sends the exact image
+            session.play_path()
+            wait_for(lambda: at(session.path[-1]), 30, "the browser's camera at the path's end")
+            session.send_screenshot()
     finally:
         sessions = [*fast.clients.values(), *exact.clients.values()]
         ports = [fast.server.get_port(), exact.server.get_port()]

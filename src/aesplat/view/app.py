@@ -352,6 +352,8 @@ class ClientSession:
                 if self._closed.is_set():
                     return
                 raise
+            if self._closed.is_set():
+                return  # the tab closed while rendering
             if self._last_move != started or self.mode != "exact":
                 continue  # stale: the camera moved while rendering
             with self.client.atomic():
