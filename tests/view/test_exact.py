@@ -41,7 +41,8 @@ def test_exact_mode_equals_predict_from_the_folder(predicted, degree):
     folder, _, _, expected = predicted
     scene = scene_from_path(folder)
     assert scene.sh_degree == SH_DEGREE and len(scene.cameras) == 2
-    torch.testing.assert_close(exact_renders(scene, degree), expected[degree].clamp(0, 1), atol=1e-5, rtol=0)
+    # the PLY holds opacities as logits and scales as logs in float32: a Gaussian may move by an ulp
+    torch.testing.assert_close(exact_renders(scene, degree), expected[degree].clamp(0, 1), atol=1e-4, rtol=0)
 
 
 @pytest.mark.parametrize("degree", [0, SH_DEGREE])
