@@ -12,11 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from PIL import Image
 
-IMAGE_SIZE = 28
-SH_DEGREE = 2
+from tests.test_predict import IMAGE_SIZE, SH_DEGREE, write_tiny_checkpoint
+
 HEAD_OUTPUT = "model.appearance.view_dependent_head.net.7.weight"
 GAUSSIAN_OUTPUT_BIAS = "model.gaussian_head.out.bias"
 RED, BLUE = (220, 30, 30), (30, 30, 220)
@@ -25,31 +24,19 @@ __all__ = ["IMAGE_SIZE", "SH_DEGREE", "make_prediction", "split_image", "write_v
 
 
 def write_view_dependent_checkpoint(run_dir: Path, gain: float = 100.0) -> Path:
-    """A random-init tiny model saved by a real Lightning Trainer (RUN/checkpoints/last.ckpt, RUN/config.yaml),
-    its view-dependent head's output layer scaled by ``gain``, its Gaussians about a pixel wide and opaque (a
-    random-init model's are a fiftieth of a pixel and half transparent: invisible in a browser)."""
-    from lightning.pytorch import Trainer
-
-    from aesplat.train import AESplatModule, EvalConfig, LossConfig, NetConfig
-
+    """The tiny checkpoint of the predict tests (RUN/checkpoints/last.ckpt, RUN/config.yaml), its view-dependent
+    head's output layer scaled by ``gain`` and its Gaussians made about a pixel wide and opaque (a random-init
+    model's are a fiftieth of a pixel and half transparent: invisible in a browser)."""
     torch.manual_seed(0)  # the same model whichever test builds it first
-    module = AESplatModule(
-        net=NetConfig(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0),
-        loss=LossConfig(lpips_weight=0.0),
-        eval=EvalConfig(metrics_lpips=False),
-    )
-    with torch.no_grad():
-        module.state_dict()[HEAD_OUTPUT].mul_(gain)
-        bias = module.state_dict()[GAUSSIAN_OUTPUT_BIAS]  # rotation 0..3, scale 4..6, opacity 7
-        bias[4:7] = 35.0  # scales 0.001 * softplus(35) = 0.035: about a pixel at the predicted depth
-        bias[7] = 2.0  # opacity 0.88
-    trainer = Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                      enable_model_summary=False, accelerator="cpu")  # fmt: skip
-    trainer.strategy.connect(module)
-    ckpt = run_dir / "checkpoints" / "last.ckpt"
-    ckpt.parent.mkdir(parents=True, exist_ok=True)
-    trainer.save_checkpoint(ckpt, weights_only=True)
-    (run_dir / "config.yaml").write_text(yaml.safe_dump({"data": {"image_size": IMAGE_SIZE}}))
+    ckpt = write_tiny_checkpoint(run_dir)
+    state = torch.load(ckpt, weights_only=False)
+    weights = state["state_dict"]
+    weights[HEAD_OUTPUT] = weights[HEAD_OUTPUT] * gain
+    bias = weights[GAUSSIAN_OUTPUT_BIAS].clone()  # rotation 0..3, scale 4..6, opacity 7
+    bias[4:7] = 35.0  # scales 0.001 * softplus(35) = 0.035: about a pixel at the predicted depth
+    bias[7] = 2.0  # opacity 0.88
+    weights[GAUSSIAN_OUTPUT_BIAS] = bias
+    torch.save(state, ckpt)
     return ckpt
 
 

@@ -14,13 +14,11 @@ digits: the model reads back exactly what was predicted.
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from ..geometry import invert_pose, matrix_to_quat, sh_dc_to_rgb
+from ..geometry import invert_pose, matrix_to_quat
 from .prediction import PredictedScene
 
 
@@ -53,7 +51,7 @@ def colmap_point_lines(scene: PredictedScene) -> list[str]:
     """``points3D.txt`` data lines: every Gaussian's centre and base colour (0..255), error 0, no track."""
     g = scene.gaussians
     means = g.means[0].double().numpy()  # [N, 3]
-    rgb = (sh_dc_to_rgb(g.sh[0, :, 0]).clamp(0, 1) * 255).round().to(torch.uint8).numpy()  # [N, 3]
+    rgb = scene.base_colors()  # [N, 3]
     return [
         f"{i + 1} {_num(x)} {_num(y)} {_num(z)} {r} {gr} {b} 0"
         for i, ((x, y, z), (r, gr, b)) in enumerate(zip(means, rgb.astype(np.int64)))
@@ -63,10 +61,7 @@ def colmap_point_lines(scene: PredictedScene) -> list[str]:
 def write_colmap(scene: PredictedScene, dest: str | Path) -> Path:
     """Write the COLMAP text model and images of ``scene`` into the folder ``dest``; returns ``dest``."""
     dest = Path(dest)
-    names = [p.name for p in scene.images]
-    (dest / "images").mkdir(parents=True, exist_ok=True)
-    for src, name in zip(scene.images, names):
-        shutil.copyfile(src, dest / "images" / name)
+    names = scene.copy_images(dest / "images")
     model = dest / "sparse" / "0"
     model.mkdir(parents=True, exist_ok=True)
     v, n = scene.num_views, scene.gaussians.num_gaussians

@@ -15,13 +15,10 @@ writes for an undistorted capture.
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from ..geometry import sh_dc_to_rgb
 from .prediction import PredictedScene
 
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inverse
@@ -49,7 +46,7 @@ def write_point_cloud(path: Path, scene: PredictedScene) -> None:
     n = g.num_gaussians
     table = np.zeros(n, dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
     table["xyz"] = g.means[0].float().numpy()
-    table["rgb"] = (sh_dc_to_rgb(g.sh[0, :, 0]).clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+    table["rgb"] = scene.base_colors()
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}", "property float x",
               "property float y", "property float z", "property uchar red", "property uchar green",
               "property uchar blue", "end_header"]  # fmt: skip
@@ -59,10 +56,7 @@ def write_point_cloud(path: Path, scene: PredictedScene) -> None:
 def write_nerfstudio(scene: PredictedScene, dest: str | Path) -> Path:
     """Write ``transforms.json``, the images and the point cloud of ``scene`` into ``dest`` (returned)."""
     dest = Path(dest)
-    names = [p.name for p in scene.images]
-    (dest / "images").mkdir(parents=True, exist_ok=True)
-    for src, name in zip(scene.images, names):
-        shutil.copyfile(src, dest / "images" / name)
+    names = scene.copy_images(dest / "images")
     write_point_cloud(dest / "sparse_pc.ply", scene)
     (dest / "transforms.json").write_text(json.dumps(transforms_json(scene, names), indent=2) + "\n")
     return dest

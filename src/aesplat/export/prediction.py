@@ -8,13 +8,16 @@ images as the model saw them) and ``gaussians.ply``. The exporters and ``aesplat
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from ..errors import MissingFileError, UserError
+from ..geometry import sh_dc_to_rgb
 from ..types import Gaussians
 from .ply import read_ply
 
@@ -51,6 +54,18 @@ class PredictedScene:
     @property
     def num_views(self) -> int:
         return len(self.names)
+
+    def copy_images(self, folder: Path) -> list[str]:
+        """Copy the input images into ``folder`` (created); returns their file names, in view order."""
+        folder.mkdir(parents=True, exist_ok=True)
+        for src in self.images:
+            shutil.copyfile(src, folder / src.name)
+        return [src.name for src in self.images]
+
+    def base_colors(self) -> np.ndarray:
+        """Every Gaussian's base colour (SH degree 0), uint8 [N, 3]: what point clouds and ``.splat`` store."""
+        rgb = sh_dc_to_rgb(self.gaussians.sh[0, :, 0]).clamp(0, 1)
+        return (rgb * 255).round().to(torch.uint8).numpy()
 
 
 def _matrices(records: list[dict], key: str) -> Tensor:
