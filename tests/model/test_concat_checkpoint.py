@@ -1,6 +1,6 @@
 """The paper's appearance head (``concat``) is unchanged: a network saved before the view aggregation became
 selectable loads into today's code and gives the same outputs (fixture written by
-``fixtures/make_concat_fixture.py`` at commit c5c0f51)."""
+``fixtures/make_concat_fixture.py`` at commit c5c0f51, square 14-pixel images)."""
 
 from dataclasses import fields
 from pathlib import Path
@@ -8,7 +8,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from aesplat.model import AESplatModel, EncoderConfig, ModelConfig, NetConfig, TransformerConfig
+from aesplat.model import (
+    AESplatModel,
+    ConcatAppearance,
+    EncoderConfig,
+    ModelConfig,
+    NetConfig,
+    TransformerConfig,
+)
 
 FIXTURE = Path(__file__).parent / "fixtures" / "concat_v1.pt"
 
@@ -43,7 +50,12 @@ def test_an_old_concat_checkpoint_gives_the_same_outputs(saved):
 
 
 def test_an_old_run_configuration_builds_the_same_appearance_head(saved):
-    """A run's saved ``model.net`` section from before builds a network with the same appearance parameters."""
-    built = NetConfig(**saved["hyper_parameters"]["net"]).build().state_dict()
+    """A run's saved ``model.net`` section from before (no ``view_aggregation``) builds the paper's head, with
+    the same appearance parameters."""
+    net = saved["hyper_parameters"]["net"]
+    assert "view_aggregation" not in net
+    assert NetConfig(**net).view_aggregation == "concat"
+    model = NetConfig(**net).build()
+    assert isinstance(model.appearance, ConcatAppearance)
     old = {k.removeprefix("model.") for k in saved["state_dict"] if k.startswith("model.appearance.")}
-    assert old == {k for k in built if k.startswith("appearance.")}
+    assert old == {k for k in model.state_dict() if k.startswith("appearance.")}
