@@ -369,7 +369,7 @@ class Bench:
         The first few calls in a process are several times slower on the CPU (allocator and kernel warm-up),
         longer than one per-setting warm-up run absorbs; without this the first settings measured look slow.
         """
-        scene = self.scenes[0]
+        scene = select_context(self.scenes[0], setting.context_views)
         options = {**self.render_kwargs, **dict(setting.render_options), "backend": setting.backend}
         for _ in range(runs):
             out = forward_batch(self.model, scene, self.cameras)
