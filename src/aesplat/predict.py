@@ -152,7 +152,7 @@ def load_image(
     except UserError:
         raise
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
-        raise UserError(f"cannot read {str(path)!r} as an image ({err}); give PNG/JPEG/... files") from None
+        raise _unreadable(path, err) from None
     # The part of the photo the model image shows, centred: in the photo's pixels, then in the decoded ones.
     box_w, box_h = min(width, out_w / scale), min(height, out_h / scale)  # one of them the photo's own side
     left, top = (width - box_w) / 2, (height - box_h) / 2
@@ -177,7 +177,11 @@ def _open_image(path: Path) -> Image.Image:
             f"input image {str(path)!r} is refused as a possible decompression bomb ({err}); downscale it first"
         ) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
-        raise UserError(f"cannot read {str(path)!r} as an image ({err}); give PNG/JPEG/... files") from None
+        raise _unreadable(path, err) from None
+
+
+def _unreadable(path: Path, err: Exception) -> UserError:
+    return UserError(f"cannot read {str(path)!r} as an image ({err}); give PNG/JPEG/... files")
 
 
 def _upright_size(img: Image.Image) -> tuple[int, int]:
