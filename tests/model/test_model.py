@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from aesplat.errors import UserError
 from aesplat.geometry import DEFAULT_FOV, focal_to_fov, num_sh_coeffs, quat_to_matrix
 from aesplat.model import APPEARANCE_MODES, ModelOutput, build_model, i2dc
 from aesplat.model.model import _quat_multiply
@@ -102,6 +103,16 @@ def test_view0_is_identity_and_initial_cameras(model):
     assert out.extrinsics[..., :3, 3].abs().max() < 0.05
 
 
+def test_a_wide_input_gets_intrinsics_per_axis_with_square_pixels(model):
+    ctx, tgt = torch.rand(1, 2, 3, H, 2 * W), torch.rand(1, 1, 3, H, 2 * W)  # 2:1
+    with torch.no_grad():
+        out = model(ctx, tgt)
+    assert out.gaussians.num_gaussians == 2 * H * 2 * W and out.depth.shape == (1, 2, H, 2 * W)
+    k = out.intrinsics
+    torch.testing.assert_close(k[..., 0, 0], 0.5 * k[..., 1, 1])  # fx / fy = H / W: square pixels
+    torch.testing.assert_close(focal_to_fov(k[..., 1, 1]), torch.full((1, 3), DEFAULT_FOV), atol=1e-6, rtol=0)
+
+
 def test_dc_is_i2dc_of_the_context_pixels(model):
     ctx = _images(1, 2, 5)
     with torch.no_grad():
@@ -197,9 +208,10 @@ def test_forward_rejects_bad_inputs(model, ctx_shape, tgt_shape, match):
         model(torch.rand(ctx_shape), tgt)
 
 
-def test_view_dependent_head_needs_the_configured_number_of_views(model):
-    with pytest.raises(ValueError, match="num_context_views"):
+def test_concat_head_refuses_another_count_in_one_line_naming_pool(model):
+    with pytest.raises(UserError, match="model.net.view_aggregation: pool") as err:
         model(_images(1, 3, 0))
+    assert "\n" not in str(err.value) and "built for 2 context views and got 3" in str(err.value)
 
 
 def _all_finite(out: ModelOutput) -> bool:
