@@ -297,3 +297,105 @@ def test_the_docs_build_puts_the_reference_into_the_configuration_page():
     assert hooks.on_page_markdown("text", other, None, None) == "text"
     with pytest.raises(ValueError, match="config-reference"):
         hooks.on_page_markdown(source.replace(hooks.MARKER, ""), page, None, None)
+
+
+# ---------------------------------------------------------------------------------------------------
+# One source per figure (scripts/figures.py): a figure a page states agrees with the file its command wrote.
+
+
+def _figures_module():
+    spec = importlib.util.spec_from_file_location("docs_figures", REPO / "scripts" / "figures.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture()
+def figures(monkeypatch):
+    module = _figures_module()
+    source = {"test": {"trained": {"psnr": 20.0512, "rot": 3.3049}, "gain": -0.384, "commit": "d2696ad",
+                       "wall_seconds": 298.4, "date": "2026-11-26T08:15:00+00:00", "scenes": 1536},
+              "rows": [{"step": "0", "psnr": "19.5"}, {"step": "600", "psnr": "20.05"}],
+              "requires": ["numpy>=1.26", "torch>=2.11", "kornia>=0.9"]}  # fmt: skip
+    monkeypatch.setitem(module.SOURCES, "t", lambda: source)
+    return module
+
+
+def _fig(key: str, text: str, spec: str = "") -> str:
+    return f"<!-- fig t:{key}{' | ' + spec if spec else ''} -->{text}<!-- /fig -->"
+
+
+@pytest.mark.parametrize(
+    ("key", "text", "spec"),
+    [("test.trained.psnr", "20.05", ""), ("test.trained.psnr", "20.1", ""), ("test.trained.psnr", "20", ""),
+     ("test.gain", "−0.38", ""), ("test.gain", "-0.4", ""), ("test.scenes", "1,536", ""),
+     ("test.trained.psnr", "+20.05", "+.2f"), ("test.wall_seconds", "4 min 58 s", "duration"),
+     ("test.date", "2026-11-26", "date"), ("test.commit", "d2696ad", ""), ("rows[step=600].psnr", "20.05", ""),
+     ("rows[-1].psnr", "20.05", ""), ("requires[torch]", "2.11", "floor"), ("test.trained.rot", "3.30", "")],
+)  # fmt: skip
+def test_a_figure_agrees_with_its_source(figures, key, text, spec):
+    assert figures.problems(f"the demo scores {_fig(key, text, spec)} dB") == []
+
+
+@pytest.mark.parametrize(
+    ("key", "text", "spec"),
+    [("test.trained.psnr", "20.06", ""), ("test.trained.psnr", "19.98", ""), ("test.gain", "0.38", ""),
+     ("test.scenes", "1,535", ""), ("test.trained.psnr", "20.05", "+.2f"), ("test.wall_seconds", "2 min 37 s",
+     "duration"), ("test.commit", "dd26b29", ""), ("rows[step=0].psnr", "20.05", ""),
+     ("requires[torch]", "2.13", "floor"), ("test.trained.rot", "3.31", "")],
+)  # fmt: skip
+def test_a_figure_that_disagrees_with_its_source_is_reported(figures, key, text, spec):
+    found = figures.problems(f"line one\nthe demo scores {_fig(key, text, spec)} dB", "page.md")
+    assert len(found) == 1 and found[0].startswith("page.md:2: the page says"), found
+
+
+def test_a_figure_whose_source_or_key_is_missing_is_reported(figures):
+    assert "no 'psnr'" in figures.problems(_fig("test.psnr", "20.05"))[0]
+    assert "does not exist" in figures.problems("<!-- fig docs/no-such.json:a -->1<!-- /fig -->")[0]
+    assert "without a matching" in figures.problems("<!-- fig t:test.gain -->-0.38")[0]
+    example = "Write `<!-- fig t:test.gain -->9<!-- /fig -->`, or:\n```\n<!-- fig t:x -->1<!-- /fig -->\n```"
+    assert figures.problems(example) == [] and figures.strip(example) == example  # code shows, never checks
+
+
+def test_markdown_tables_are_sources(figures, tmp_path, monkeypatch):
+    page = tmp_path / "results.md"
+    page.write_text("# Speed\n\n| run | seconds per step |\n| --- | ---: |\n| eager (`foreach`) | 0.453 |\n"
+                    "| eager again | 0.442 |\n| **as shipped** | 0.333 (fused) |\n")  # fmt: skip
+    monkeypatch.setattr(figures, "REPO", tmp_path)
+    assert figures.lookup(figures.load("results.md"), "[run=eager].seconds per step") == "0.453"
+    assert figures.problems("<!-- fig results.md:[run=as shipped].seconds per step -->0.333<!-- /fig -->") == []
+    assert figures.problems("<!-- fig results.md:[run=eager again].seconds per step -->0.453<!-- /fig -->")
+
+
+def test_write_puts_each_sources_value_into_the_page(figures):
+    def page(psnr: str, gain: str, wall: str) -> str:
+        wall = _fig("test.wall_seconds", wall, "duration")
+        return f"PSNR {_fig('test.trained.psnr', psnr)} dB, gain {_fig('test.gain', gain)}, {wall}"
+
+    new = figures.rewrite(page("19.98", "−0.41", "2 min"))
+    assert new == page("20.05", "−0.38", "4 min 58 s")
+    assert figures.problems(new) == [] and figures.strip(new) == "PSNR 20.05 dB, gain −0.38, 4 min 58 s"
+
+
+def test_every_figure_of_the_readme_and_the_pages_agrees_with_its_source():
+    figures = _figures_module()
+    found = [
+        line for page in PAGES for line in figures.problems(page.read_text(), page.relative_to(REPO).as_posix())
+    ]
+    assert not found, "\n".join(found)
+
+
+def test_the_docs_build_fails_on_a_figure_that_disagrees_and_shows_the_figure_without_its_comments():
+    from types import SimpleNamespace
+
+    spec = importlib.util.spec_from_file_location("mkdocs_hooks_figures", REPO / "scripts" / "mkdocs_hooks.py")
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
+    page = SimpleNamespace(file=SimpleNamespace(src_uri="index.md"))
+    good = "floor <!-- fig pyproject:project.dependencies[torch] | floor -->{}<!-- /fig -->"
+    floor = hooks._figures.lookup(hooks._figures.load("pyproject"), "project.dependencies[torch]")
+    right = floor.removeprefix(">=").split(",")[0]
+    assert hooks.on_page_markdown(good.format(right), page, None, None) == f"floor {right}"
+    with pytest.raises(ValueError, match="disagree"):
+        hooks.on_page_markdown(good.format(right + ".9"), page, None, None)
