@@ -18,7 +18,8 @@ with the source:
 
 SOURCE is a name of ``SOURCES`` below or a file path from the repository root; KEY is a path into the file:
 ``a.b.c`` walks mappings, ``[2]`` or ``[-1]`` picks an element of a list, ``[step=600]`` the first row whose
-``step`` is 600, ``[torch]`` in a list of requirements the specifier of ``torch``. Files are read by their
+``step`` is 600 (``[set=diffuse,row=full]``: all of them hold), ``[torch]`` in a list of requirements the
+specifier of ``torch``. Files are read by their
 suffix: JSON, YAML, TOML, CSV (a list of rows) and markdown, whose tables are one list of rows (each row a
 mapping of its table's header cells to its cells, markup removed): ``[run=eager again].seconds per step``.
 
@@ -84,15 +85,35 @@ def _seeds(pattern: str, step_column: str = "step") -> Callable[[], dict]:
     return compute
 
 
+def _paper_scale() -> dict:
+    """A computed source: the hours the paper's runs take at the step time measured on one GPU (the
+    `aesplat fit -c conf/re10k.yaml` row of docs/results/gpu-training-step.md), for conf/re10k.yaml's steps
+    and the ablation overlays' (conf/ablation/*.yaml, six rows)."""
+    step = _number(lookup(load("gpu-step"), "[run=aesplat fit -c conf/re10k.yaml].seconds per step"))
+    steps = int(lookup(load("re10k-config"), "trainer.max_steps"))
+    rows = sorted((REPO / "conf" / "ablation").glob("*.yaml"))
+    ablation = {int(lookup(yaml.safe_load(p.read_text()), "trainer.max_steps")) for p in rows}
+    if len(ablation) != 1:
+        raise FigureError(f"the ablation overlays train for different numbers of steps: {sorted(ablation)}")
+    ablation_steps = ablation.pop()
+    hours = step / 3600
+    return {"step_seconds": step, "steps": steps, "hours": steps * hours, "ablation_steps": ablation_steps,
+            "ablation_hours": ablation_steps * hours, "ablation_rows": len(rows),
+            "ablation_rows_hours": len(rows) * ablation_steps * hours}  # fmt: skip
+
+
 # Named sources: the files (or computations over files) that pages quote. A page may also name a path.
 SOURCES: dict[str, str | Callable[[], dict]] = {
+    # `make demo DEMO_RESULTS=docs/results/demo`: today's demo figures, with date, commit, machine and load
+    "demo": "docs/results/demo/demo.json",
     # the demo's pose-free stage over three data seeds (validation split and choices, docs/validation.md)
     "demo-seeds": _seeds("docs/results/curves/validation-choice/ws1536-lr5e-5*.csv"),
     "demo-config": "conf/demo.yaml",
     "re10k-config": "conf/re10k.yaml",
     "pyproject": "pyproject.toml",
     "ablation": "docs/results/ablation/table.csv",
-    "gpu-step": "docs/results/gpu-training-step.md",
+    "gpu-step": "docs/results/gpu-training-step.md",  # the record of the last H100 measurement
+    "paper-scale": _paper_scale,
 }
 
 MARKER = re.compile(
@@ -209,10 +230,12 @@ def lookup(data: object, key: str) -> object:
             except IndexError:
                 raise FigureError(f"[{selector}]: the list has {len(value)} elements") from None
         elif "=" in selector:
-            field, wanted = (s.strip() for s in selector.split("=", 1))
-            rows = [r for r in value if isinstance(r, dict) and field in r and _same(r[field], wanted)]
+            wanted = [tuple(s.strip() for s in part.split("=", 1)) for part in selector.split(",")]
+            rows = [
+                r for r in value if isinstance(r, dict) and all(f in r and _same(r[f], v) for f, v in wanted)
+            ]
             if not rows:
-                raise FigureError(f"no row with {field} = {wanted}")
+                raise FigureError(f"no row with {selector}")
             value = rows[0]
         else:
             found = _requirement(value, selector)
@@ -260,7 +283,8 @@ def formatted(value: object, spec: str) -> str:
     if spec in FORMATS:
         return FORMATS[spec](value)
     try:
-        return format(_number(value), spec)
+        number = _number(value)
+        return format(int(number) if spec.endswith("d") and number.is_integer() else number, spec)
     except (TypeError, ValueError) as error:
         raise FigureError(f"cannot format {value!r} with '{spec}': {error}") from None
 

@@ -316,7 +316,8 @@ def figures(monkeypatch):
     module = _figures_module()
     source = {"test": {"trained": {"psnr": 20.0512, "rot": 3.3049}, "gain": -0.384, "commit": "d2696ad",
                        "wall_seconds": 298.4, "date": "2026-11-26T08:15:00+00:00", "scenes": 1536},
-              "rows": [{"step": "0", "psnr": "19.5"}, {"step": "600", "psnr": "20.05"}],
+              "rows": [{"step": "0", "psnr": "19.5"}, {"step": "600", "psnr": "20.05"},
+                       {"step": "600", "psnr": "21.0", "seed": "1"}],
               "requires": ["numpy>=1.26", "torch>=2.11", "kornia>=0.9"]}  # fmt: skip
     monkeypatch.setitem(module.SOURCES, "t", lambda: source)
     return module
@@ -330,9 +331,11 @@ def _fig(key: str, text: str, spec: str = "") -> str:
     ("key", "text", "spec"),
     [("test.trained.psnr", "20.05", ""), ("test.trained.psnr", "20.1", ""), ("test.trained.psnr", "20", ""),
      ("test.gain", "−0.38", ""), ("test.gain", "-0.4", ""), ("test.scenes", "1,536", ""),
-     ("test.trained.psnr", "+20.05", "+.2f"), ("test.wall_seconds", "4 min 58 s", "duration"),
-     ("test.date", "2026-11-26", "date"), ("test.commit", "d2696ad", ""), ("rows[step=600].psnr", "20.05", ""),
-     ("rows[-1].psnr", "20.05", ""), ("requires[torch]", "2.11", "floor"), ("test.trained.rot", "3.30", "")],
+     ("test.scenes", "1,536", ",d"), ("test.trained.psnr", "+20.05", "+.2f"),
+     ("test.wall_seconds", "4 min 58 s", "duration"), ("test.date", "2026-11-26", "date"),
+     ("test.commit", "d2696ad", ""), ("rows[step=600].psnr", "20.05", ""), ("rows[1].psnr", "20.05", ""),
+     ("rows[step=600,seed=1].psnr", "21.0", ""), ("requires[torch]", "2.11", "floor"),
+     ("test.trained.rot", "3.30", "")],
 )  # fmt: skip
 def test_a_figure_agrees_with_its_source(figures, key, text, spec):
     assert figures.problems(f"the demo scores {_fig(key, text, spec)} dB") == []
