@@ -1,6 +1,7 @@
 """scripts/demo_report.py: the posed diagnostic section (`model.cameras: dataset`) of the demo report."""
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -165,6 +166,9 @@ def test_the_results_folder_gets_whole_files_only(tmp_path, monkeypatch):
     assert json.loads((tmp_path / "docs" / "demo.json").read_text()) == results
     assert (tmp_path / "docs" / "render_grid.png").read_bytes() == b"png"
     assert (tmp_path / "docs" / "headline.md").read_text().startswith("| metric |")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "docs" / "demo.json").stat().st_mode & 0o777 == 0o666 & ~umask  # as any new file
 
     def full_disk(*args):
         raise OSError(28, "No space left on device")
