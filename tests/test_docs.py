@@ -402,3 +402,14 @@ def test_the_docs_build_fails_on_a_figure_that_disagrees_and_shows_the_figure_wi
     assert hooks.on_page_markdown(good.format(right), page, None, None) == f"floor {right}"
     with pytest.raises(ValueError, match="disagree"):
         hooks.on_page_markdown(good.format(right + ".9"), page, None, None)
+
+
+def test_the_paper_page_deltas_are_the_papers_rows_minus_full():
+    """docs/paper.md copies the paper's ablation table; its Δ column is each row's PSNR less `full`'s."""
+    rows = [r for r in _figures_module()._markdown_tables(REPO / "docs" / "paper.md") if "paper: Δ" in r]
+    full = float(next(r["paper: PSNR"] for r in rows if r["row"] == "full"))
+    deltas = {r["row"]: r["paper: Δ"] for r in rows if r["row"] != "full"}
+    assert len(deltas) == 5
+    for row, delta in deltas.items():
+        psnr = float(next(r["paper: PSNR"] for r in rows if r["row"] == row))
+        assert float(delta.replace("−", "-")) == pytest.approx(psnr - full, abs=5e-4), row
