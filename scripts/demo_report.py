@@ -28,17 +28,17 @@ import json
 import math
 import os
 import platform
-import subprocess
 import sys
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
 import matplotlib
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
+from figures import provenance, write_whole  # noqa: E402
 
 from aesplat.bench import evaluation_scenes  # noqa: E402
 from aesplat.model import forward_batch  # noqa: E402
@@ -430,48 +430,6 @@ def posed_section(
 # The report's figures as data (demo.json): what the documentation pages quote
 
 
-def machine() -> dict:
-    """The machine the run measured on: CPU model, cores, memory, system, Python, torch and its threads."""
-    info = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "memory_gib": None}
-    for name, prefix in (("/proc/cpuinfo", "model name"), ("/proc/meminfo", "MemTotal:")):
-        try:
-            line = next(x for x in Path(name).read_text().splitlines() if x.startswith(prefix))
-        except (OSError, StopIteration):
-            continue
-        if prefix == "model name":
-            info["cpu"] = line.split(":", 1)[1].strip()
-        else:
-            info["memory_gib"] = round(int(line.split()[1]) / 2**20, 1)  # kB
-    return {**info, "system": f"{platform.system()} {platform.machine()}", "python": sys.version.split()[0],
-            "torch": torch.__version__, "torch_threads": torch.get_num_threads()}  # fmt: skip
-
-
-def load_average() -> list[float] | None:
-    """The 1-, 5- and 15-minute load averages (runnable processes; the machine's cores are its capacity)."""
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:
-        return None
-
-
-def git_commit() -> dict:
-    """The commit of the checkout that ran, and whether its tracked files (the documentation aside: pages do
-    not change a run) differed from that commit."""
-    root = Path(__file__).resolve().parents[1]
-
-    def git(*args: str) -> str:
-        return subprocess.run(
-            ["git", *args], cwd=root, capture_output=True, text=True, check=True
-        ).stdout.strip()
-
-    code = ("--", ".", ":(exclude)docs", ":(exclude)*.md")
-    try:
-        return {"commit": git("rev-parse", "--short", "HEAD"),
-                "modified": bool(git("status", "--porcelain", "--untracked-files=no", *code))}  # fmt: skip
-    except (OSError, subprocess.CalledProcessError):
-        return {"commit": None, "modified": None}
-
-
 def _finite(value: float | None) -> float | None:
     return value if value is not None and math.isfinite(value) else None
 
@@ -524,24 +482,6 @@ def headline_table(results: dict) -> list[str]:
     ]
 
 
-def write_whole(path: Path, data: bytes) -> None:
-    """Write ``path`` whole or not at all: a temporary file in the same folder, synced, then renamed."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp's 0600 would keep the file from others who read the folder
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_results(results: dict, folder: Path, grid: Path | None = None) -> None:
     """demo.json, headline.md (and a copy of render_grid.png) into ``folder``, each whole or not at all."""
     write_whole(folder / "demo.json", (json.dumps(results, indent=1) + "\n").encode())
@@ -575,7 +515,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--command", default="make demo", help="the command that ran, for demo.json")
     args = parser.parse_args(argv)
     load_start = [float(v) for v in args.load_start.split()[:3]] if args.load_start else None
-    provenance = git_commit()  # before anything is written
 
     torch.set_grad_enabled(False)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -708,10 +647,7 @@ def main(argv: list[str] | None = None) -> int:
         posed = {"start": read_summary(args.posed_initial), "trained": read_summary(args.posed_trained)}
     results = {
         "command": args.command,
-        "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        **provenance,
-        "machine": machine(),
-        "load": {"start": load_start, "end": load_average()},
+        **provenance(load_start),
         "config": {
             "steps": steps,
             "lr": optim.get("lr"),

@@ -413,3 +413,13 @@ def test_the_paper_page_deltas_are_the_papers_rows_minus_full():
     for row, delta in deltas.items():
         psnr = float(next(r["paper: PSNR"] for r in rows if r["row"] == row))
         assert float(delta.replace("−", "-")) == pytest.approx(psnr - full, abs=5e-4), row
+
+
+def test_a_source_records_when_where_and_under_what_load_it_was_measured():
+    import subprocess
+
+    record = _figures_module().provenance([0.5, 0.4, 0.3])
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
+    assert record["commit"] == head.stdout.strip() and isinstance(record["modified"], bool)
+    assert record["load"]["start"] == [0.5, 0.4, 0.3] and len(record["load"]["end"]) == 3
+    assert record["machine"]["cores"] >= 1 and record["date"].endswith("+00:00")
