@@ -71,6 +71,9 @@ def _seeds(pattern: str, step_column: str = "step") -> Callable[[], dict]:
         if not files:
             raise FigureError(f"no file matches {pattern}")
         last = [_csv(path)[-1] for path in files]
+        for row in last:  # the gain over copying the mean of the context views, per seed
+            if row.get("psnr") and row.get("copy_mean_psnr"):
+                row["psnr_over_copy_mean"] = float(row["psnr"]) - float(row["copy_mean_psnr"])
         out: dict = {"seeds": len(files), "files": [p.relative_to(REPO).as_posix() for p in files]}
         for column in last[0]:
             if column == step_column:
@@ -113,6 +116,7 @@ SOURCES: dict[str, str | Callable[[], dict]] = {
     "demo-config": "conf/demo.yaml",
     "re10k-config": "conf/re10k.yaml",
     "pyproject": "pyproject.toml",
+    "makefile": "Makefile",  # its variables, and the torch / torchvision its venv pins (torch_pin)
     "ablation": "docs/results/ablation/table.csv",
     "gpu-step": "docs/results/gpu-training-step.md",  # the record of the last H100 measurement
     "paper-scale": _paper_scale,
@@ -227,6 +231,17 @@ def _markdown_tables(path: Path) -> list[dict]:
     return rows
 
 
+def _make_variables(path: Path) -> dict:
+    """A Makefile's variables (``NAME ?= value``, ``NAME := value``, ``NAME = value``; comments dropped), and
+    ``torch_pin`` / ``torchvision_pin``: the versions its venv recipe pins (``"torch==2.14.1"``)."""
+    text = path.read_text()
+    assignment = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)\s*[?:]?=\s*(.*)$", re.MULTILINE)
+    found = {m.group(1): m.group(2).split("#")[0].strip() for m in assignment.finditer(text)}
+    for name, version in re.findall(r'"(torch|torchvision)==([^"]+)"', text):
+        found.setdefault(f"{name}_pin", version)
+    return found
+
+
 @cache
 def load(source: str) -> object:
     """The data of a named source or a file from the repository root."""
@@ -249,6 +264,8 @@ def load(source: str) -> object:
         return _csv(path)
     if suffix == ".md":
         return _markdown_tables(path)
+    if path.name == "Makefile":
+        return _make_variables(path)
     raise FigureError(f"{entry}: no reader for {suffix} files")
 
 
@@ -403,6 +420,7 @@ def expected_text(value: object, spec: str | None, page_text: str) -> str:
 
 
 def agrees(value: object, spec: str | None, page_text: str) -> bool:
+    page_text = " ".join(page_text.split())  # a figure may wrap across lines
     if spec:
         return page_text.strip().replace("−", "-") == formatted(value, spec).replace("−", "-")
     page = _page_number(page_text)
