@@ -117,6 +117,8 @@ SOURCES: dict[str, str | Callable[[], dict]] = {
     "re10k-config": "conf/re10k.yaml",
     "pyproject": "pyproject.toml",
     "makefile": "Makefile",  # its variables, and the torch / torchvision its venv pins (torch_pin)
+    # python benchmarks/bench_render.py --repeats 7 --compile --sections reference --json (this file)
+    "rasterizer": "docs/results/rasterizer/reference.json",
     "ablation": "docs/results/ablation/table.csv",
     "gpu-step": "docs/results/gpu-training-step.md",  # the record of the last H100 measurement
     "paper-scale": _paper_scale,
@@ -250,6 +252,8 @@ def load(source: str) -> object:
         return entry()
     path = REPO / entry
     if not path.is_file():
+        if source not in SOURCES and "/" not in source and "." not in source:
+            raise FigureError(f"no source named '{source}' in scripts/figures.py SOURCES, and no such file")
         raise FigureError(f"{entry} does not exist (the command that measures it writes it)")
     suffix = path.suffix.lower()
     if suffix == ".json":

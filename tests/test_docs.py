@@ -356,6 +356,7 @@ def test_a_figure_that_disagrees_with_its_source_is_reported(figures, key, text,
 def test_a_figure_whose_source_or_key_is_missing_is_reported(figures):
     assert "no 'psnr'" in figures.problems(_fig("test.psnr", "20.05"))[0]
     assert "does not exist" in figures.problems("<!-- fig docs/no-such.json:a -->1<!-- /fig -->")[0]
+    assert "no source named 'nosuch'" in figures.problems("<!-- fig nosuch:a -->1<!-- /fig -->")[0]
     assert "without a matching" in figures.problems("<!-- fig t:test.gain -->-0.38")[0]
     example = "Write `<!-- fig t:test.gain -->9<!-- /fig -->`, or:\n```\n<!-- fig t:x -->1<!-- /fig -->\n```"
     assert figures.problems(example) == [] and figures.strip(example) == example  # code shows, never checks
@@ -423,3 +424,22 @@ def test_a_source_records_when_where_and_under_what_load_it_was_measured():
     assert record["commit"] == head.stdout.strip() and isinstance(record["modified"], bool)
     assert record["load"]["start"] == [0.5, 0.4, 0.3] and len(record["load"]["end"]) == 3
     assert record["machine"]["cores"] >= 1 and record["date"].endswith("+00:00")
+
+
+# Pages a newcomer reads first: every measured figure on them (a number with a unit of measure) is written
+# between figure comments, so it is checked against its source. Code blocks and inline code are not prose.
+OVERVIEW_PAGES = ["README.md", "docs/index.md", "docs/getting-started.md", "docs/results/index.md"]
+MEASURED = re.compile(r"(?<![\w.])\d[\d,]*(?:\.\d+)?\s?(?:dB|°|ms|GiB|MiB|min|s/step|samples/s|×)(?!\w)")
+
+
+@pytest.mark.parametrize("name", OVERVIEW_PAGES)
+def test_overview_pages_state_measured_figures_only_from_their_sources(name):
+    figures = _figures_module()
+    text = (REPO / name).read_text()
+    text = re.sub(r"```.*?```", "", text, flags=re.DOTALL)
+    text = figures.MARKER.sub("", text)  # a checked figure and its unit
+    text = re.sub(r"`[^`]*`|<!--.*?-->|\([^()]*\.(?:png|md)[^()]*\)", "", text, flags=re.DOTALL)
+    unsourced = [
+        line.strip() for line in text.splitlines() if MEASURED.search(line) and not line.startswith("    ")
+    ]
+    assert not unsourced, f"{name}: measured figures not read from a source:\n" + "\n".join(unsourced)
