@@ -446,3 +446,36 @@ def test_overview_pages_state_measured_figures_only_from_their_sources(name):
         line.strip() for line in text.splitlines() if MEASURED.search(line) and not line.startswith("    ")
     ]
     assert not unsourced, f"{name}: measured figures not read from a source:\n" + "\n".join(unsourced)
+
+
+# A code block wider than this scrolls sideways on a 1280-pixel screen (the site's theme shows about 82
+# characters of code there): wrap long commands with `\` and put long comments on lines of their own.
+CODE_WIDTH = 80
+
+
+def _displayed_code_lines(text: str) -> list[tuple[int, str]]:
+    """(line number, text as shown) of every line of a fenced or top-level indented code block."""
+    found, fenced, indent, previous_blank, in_block = [], False, 0, True, False
+    for number, line in enumerate(text.splitlines(), 1):
+        stripped = line.lstrip()
+        if stripped.startswith("```"):
+            fenced, indent, in_block = not fenced, len(line) - len(stripped), False
+        elif fenced:
+            found.append((number, line[indent:]))
+        elif line.startswith("    ") and (previous_blank or in_block):
+            if in_block or not re.match(r"\s*(?:[-*]|\d+\.)\s", line):
+                found.append((number, line[4:]))
+                in_block = True
+        elif line.strip():
+            in_block = False
+        previous_blank = not line.strip()
+    return found
+
+
+def test_code_blocks_fit_the_page():
+    wide = [f"{page.relative_to(REPO)}:{number}: {len(shown)} characters"
+            for page in PAGES for number, shown in _displayed_code_lines(page.read_text())
+            if len(shown.rstrip()) > CODE_WIDTH]  # fmt: skip
+    assert not wide, "code lines wider than the page (wrap with `\\`):\n" + "\n".join(wide)
+    assert _displayed_code_lines("text\n\n    aesplat fit \\\n        -c x.yaml\n```\na\n```\n") == [
+        (3, "aesplat fit \\"), (4, "    -c x.yaml"), (6, "a")]  # fmt: skip
