@@ -479,3 +479,13 @@ def test_code_blocks_fit_the_page():
     assert not wide, "code lines wider than the page (wrap with `\\`):\n" + "\n".join(wide)
     assert _displayed_code_lines("text\n\n    aesplat fit \\\n        -c x.yaml\n```\na\n```\n") == [
         (3, "aesplat fit \\"), (4, "    -c x.yaml"), (6, "a")]  # fmt: skip
+
+
+def test_the_pages_speak_of_the_project_not_of_how_it_was_made():
+    """A figure says its date, commit, machine and load; never who measured it or who else used the machine."""
+    making = re.compile(r"\b(?:sessions?|engineers?|coordinator|integrator|other helpers)\b", re.IGNORECASE)
+    pages = [*PAGES, REPO / "CHANGELOG.md", REPO / "benchmarks" / "RESULTS.md"]
+    found = [f"{page.relative_to(REPO)}:{number}: {line.strip()[:80]}"
+             for page in pages for number, line in enumerate(page.read_text().splitlines(), 1)
+             if making.search(line)]  # fmt: skip
+    assert not found, "\n".join(found)
