@@ -489,3 +489,45 @@ def test_the_pages_speak_of_the_project_not_of_how_it_was_made():
              for page in pages for number, line in enumerate(page.read_text().splitlines(), 1)
              if making.search(line)]  # fmt: skip
     assert not found, "\n".join(found)
+
+
+# The paper's names a reader meets on the pages, each defined once on the method page (docs/design.md#ANCHOR).
+TERMS = {
+    "I2DC": "i2dc",
+    "GVSRE": "gvsre",
+    "WCM": "wcm",
+    "DPT": "dpt",
+    "alternating attention": "alternating-attention",
+}
+
+
+def _prose(text: str) -> str:
+    """The page with code blocks, indented code and inline code blanked out (same length)."""
+    blank = lambda m: re.sub(r"[^\n]", " ", m.group(0))  # noqa: E731
+    text = re.sub(r"```.*?```", blank, text, flags=re.DOTALL)
+    text = re.sub(r"(?m)^    .*$", blank, text)
+    return re.sub(r"`[^`\n]*`", blank, text)
+
+
+def test_each_term_of_the_paper_links_the_method_page_where_a_page_first_uses_it():
+    unexplained = []
+    for page in PAGES:
+        name = page.relative_to(REPO).as_posix()
+        if name == "docs/design.md" or "/curves/" in name or "/ablation/" in name or "/pose_probe/" in name:
+            continue  # the definitions themselves, and the files benchmarks write
+        text = page.read_text()
+        prose = _prose(text)
+        for term, anchor in TERMS.items():
+            found = re.search(rf"(?<![\w-]){re.escape(term)}(?![\w-])", prose)
+            if found is None:
+                continue
+            linked = (
+                text[found.start() - 1] == "["
+                and f"design.md#{anchor})" in text[found.end() : found.end() + 60]
+            )
+            if not linked:
+                unexplained.append(f"{name}:{text.count(chr(10), 0, found.start()) + 1}: {term}")
+    assert not unexplained, "first use without a link to its definition on the method page:\n" + "\n".join(
+        unexplained
+    )
+    assert all(f"{{ #{anchor} }}" in (REPO / "docs" / "design.md").read_text() for anchor in TERMS.values())
