@@ -62,7 +62,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 def _seeds(pattern: str, step_column: str = "step") -> Callable[[], dict]:
     """A computed source: the mean and 95 % t-interval over data seeds of the last row of each curve CSV that
-    ``benchmarks/learning_curves.py`` wrote (files matching ``pattern``), per column."""
+    ``benchmarks/learning_curves.py`` wrote (files matching ``pattern``, in name order), per column, and those
+    last rows themselves (``runs``), each with its gain over copying the mean of the context views."""
 
     def compute() -> dict:
         from aesplat.stats import t_interval
@@ -74,7 +75,11 @@ def _seeds(pattern: str, step_column: str = "step") -> Callable[[], dict]:
         for row in last:  # the gain over copying the mean of the context views, per seed
             if row.get("psnr") and row.get("copy_mean_psnr"):
                 row["psnr_over_copy_mean"] = float(row["psnr"]) - float(row["copy_mean_psnr"])
-        out: dict = {"seeds": len(files), "files": [p.relative_to(REPO).as_posix() for p in files]}
+        out: dict = {
+            "seeds": len(files),
+            "files": [p.relative_to(REPO).as_posix() for p in files],
+            "runs": last,
+        }
         for column in last[0]:
             if column == step_column:
                 out[column] = last[0][column]
