@@ -190,7 +190,8 @@ def render_grid(
                 ax.set_ylabel(scene.scene[0][:18], fontsize=7)
         axes[row, 3].set_xlabel(f"{values['untrained']:.2f} dB", fontsize=8)
         axes[row, 4].set_xlabel(f"{values['trained']:.2f} dB", fontsize=8)
-    title = (f"test scenes: renders of the first target view with the {CAMERAS[trained.cameras]} "
+    cameras = CAMERAS[trained.cameras].replace("*", "")  # markdown emphasis means nothing in a plot title
+    title = (f"test scenes: renders of the first target view with the {cameras} "
              "(PSNR over all targets)")  # fmt: skip
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
