@@ -19,9 +19,13 @@ with the source:
 SOURCE is a name of ``SOURCES`` below or a file path from the repository root; KEY is a path into the file:
 ``a.b.c`` walks mappings, ``[2]`` or ``[-1]`` picks an element of a list, ``[step=600]`` the first row whose
 ``step`` is 600 (``[set=diffuse,row=full]``: all of them hold), ``[torch]`` in a list of requirements the
-specifier of ``torch``. Files are read by their
-suffix: JSON, YAML, TOML, CSV (a list of rows) and markdown, whose tables are one list of rows (each row a
-mapping of its table's header cells to its cells, markup removed): ``[run=eager again].seconds per step``.
+specifier of ``torch``. Files are read by their suffix: JSON, YAML, TOML, CSV (a list of rows), a Makefile
+(its variables) and markdown, whose tables are one list of rows (each row a mapping of its table's header cells
+to its cells, markup removed): ``[run=eager again].seconds per step``.
+
+A command that measures writes its source with ``provenance()`` (date, commit, machine, load) beside its
+figures, and ``write_whole()`` (whole or not at all), as ``scripts/demo_report.py`` and
+``benchmarks/bench_render.py --json`` do.
 
     python scripts/figures.py                  # check every page; print each disagreement; exit 1 if any
     python scripts/figures.py --write          # rewrite the figures of the pages from their sources
@@ -351,8 +355,10 @@ def _duration(seconds: object) -> str:
     hours, rest = divmod(total, 3600)
     minutes, secs = divmod(rest, 60)
     if hours:
-        return f"{hours} h {minutes} min"
-    return f"{minutes} min {secs} s" if minutes else f"{secs} s"
+        return f"{hours} h {minutes} min" if minutes else f"{hours} h"
+    if minutes:
+        return f"{minutes} min {secs} s" if secs else f"{minutes} min"
+    return f"{secs} s"
 
 
 def _date(value: object) -> str:
@@ -414,11 +420,14 @@ def expected_text(value: object, spec: str | None, page_text: str) -> str:
         source = _number(value)
     except (TypeError, ValueError):
         source = None
-    if page is None or source is None:
+    if page is None or source is None or not math.isfinite(source):
         return str(value)
     decimals = page[1]
-    if decimals < 0:
-        return f"{source:g}"
+    if decimals < 0:  # scientific notation, in the page's style: 5e-5, 2.5e-4
+        mantissa = page_text.strip().strip("*").lower().split("e")[0]
+        digits = len(mantissa.split(".")[1]) if "." in mantissa else 0
+        return re.sub(r"e([-+])0*(\d)", lambda m: f"e{m.group(1).replace('+', '')}{m.group(2)}",
+                      f"{source:.{digits}e}")  # fmt: skip
     core = page_text.strip()
     body = f"{_rounded(source, decimals):{',' if ',' in core else ''}.{decimals}f}"
     if body.startswith("-") and "−" in core:
@@ -511,11 +520,13 @@ def strip(text: str) -> str:
 
 
 def rewrite(text: str) -> str:
-    """The page with every figure replaced by its source's value (in the page's precision or format)."""
+    """The page with every figure that disagrees with its source replaced by the source's value, in the
+    page's precision, style or format (a figure that agrees is left as the page writes it)."""
     pieces, last = [], 0
     for fig in figures(text):
         value = lookup(load(fig.source), fig.key)
-        pieces += [text[last : fig.start], expected_text(value, fig.spec, fig.text)]
+        new = fig.text if agrees(value, fig.spec, fig.text) else expected_text(value, fig.spec, fig.text)
+        pieces += [text[last : fig.start], new]
         last = fig.end
     return "".join(pieces) + text[last:]
 

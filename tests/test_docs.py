@@ -321,7 +321,7 @@ def figures(monkeypatch):
                        "wall_seconds": 298.4, "date": "2026-11-26T08:15:00+00:00", "scenes": 1536},
               "rows": [{"step": "0", "psnr": "19.5"}, {"step": "600", "psnr": "20.05"},
                        {"step": "600", "psnr": "21.0", "seed": "1"}],
-              "requires": ["numpy>=1.26", "torch>=2.11", "kornia>=0.9"]}  # fmt: skip
+              "requires": ["numpy>=1.26", "torch>=2.11", "kornia>=0.9"], "tiny": "5.0e-5"}  # fmt: skip
     monkeypatch.setitem(module.SOURCES, "t", lambda: source)
     return module
 
@@ -335,7 +335,8 @@ def _fig(key: str, text: str, spec: str = "") -> str:
     [("test.trained.psnr", "20.05", ""), ("test.trained.psnr", "20.1", ""), ("test.trained.psnr", "20", ""),
      ("test.gain", "−0.38", ""), ("test.gain", "-0.4", ""), ("test.scenes", "1,536", ""),
      ("test.scenes", "1,536", ",d"), ("test.trained.psnr", "+20.05", "+.2f"),
-     ("test.wall_seconds", "4 min 58 s", "duration"), ("test.date", "2026-11-26", "date"),
+     ("test.wall_seconds", "4 min 58 s", "duration"), ("rows[1].step", "10 min", "duration"),
+     ("test.date", "2026-11-26", "date"),
      ("test.commit", "d2696ad", ""), ("rows[step=600].psnr", "20.05", ""), ("rows[1].psnr", "20.05", ""),
      ("rows[step=600,seed=1].psnr", "21.0", ""), ("requires[torch]", "2.11", "floor"),
      ("test.trained.rot", "3.30", "")],
@@ -382,6 +383,9 @@ def test_write_puts_each_sources_value_into_the_page(figures):
 
     new = figures.rewrite(page("19.98", "−0.41", "2 min"))
     assert new == page("20.05", "−0.38", "4 min 58 s")
+    assert figures.rewrite(page("20.1", "-0.4", "4 min 58 s")) == page("20.1", "-0.4", "4 min 58 s")  # agree
+    assert figures.rewrite(_fig("tiny", "5e-5")) == _fig("tiny", "5e-5")
+    assert figures.rewrite(_fig("tiny", "7e-5")) == _fig("tiny", "5e-5")  # the page's notation
     assert figures.problems(new) == [] and figures.strip(new) == "PSNR 20.05 dB, gain −0.38, 4 min 58 s"
 
 
