@@ -535,3 +535,23 @@ def test_each_term_of_the_paper_links_the_method_page_where_a_page_first_uses_it
         unexplained
     )
     assert all(f"{{ #{anchor} }}" in (REPO / "docs" / "design.md").read_text() for anchor in TERMS.values())
+
+
+# The widest tables that fit the page at 1280 px have 7 columns; the 8- to 11-column ones hid their last
+# columns (split a wider table, the key columns first in each part).
+TABLE_COLUMNS = 7
+
+
+def test_tables_fit_the_page():
+    wide = []
+    for page in PAGES:
+        header = None
+        for number, line in enumerate(page.read_text().splitlines(), 1):
+            stripped = line.strip()
+            if not (stripped.startswith("|") and stripped.endswith("|")):
+                header = None
+            elif header is None:
+                header = len(re.split(r"(?<!\\)\|", stripped[1:-1]))
+                if header > TABLE_COLUMNS:
+                    wide.append(f"{page.relative_to(REPO)}:{number}: {header} columns")
+    assert not wide, "tables wider than the page:\n" + "\n".join(wide)
