@@ -40,21 +40,21 @@ def write_view_dependent_checkpoint(run_dir: Path, gain: float = 100.0) -> Path:
     return ckpt
 
 
-def split_image(path: Path, boundary: int, size: int = IMAGE_SIZE) -> Path:
-    """A size x size PNG: red left of column ``boundary``, blue from it on."""
-    img = np.empty((size, size, 3), np.uint8)
+def split_image(path: Path, boundary: int, size: int = IMAGE_SIZE, width: int | None = None) -> Path:
+    """A ``size`` tall, ``width`` (default: ``size``) wide PNG: red left of column ``boundary``, blue after."""
+    img = np.empty((size, width or size, 3), np.uint8)
     img[:, :boundary] = RED
     img[:, boundary:] = BLUE
     Image.fromarray(img).save(path)
     return path
 
 
-def make_prediction(root: Path, *extra: str) -> tuple[Path, Path, list[Path]]:
-    """Run ``aesplat predict`` on two split images -> (prediction folder, checkpoint, images)."""
+def make_prediction(root: Path, *extra: str, width: int = IMAGE_SIZE) -> tuple[Path, Path, list[Path]]:
+    """Run ``aesplat predict`` on two split images ``width`` wide -> (prediction folder, checkpoint, images)."""
     from aesplat.predict import main
 
     ckpt = write_view_dependent_checkpoint(root / "run")
-    images = [split_image(root / "left.png", 12), split_image(root / "right.png", 16)]
+    images = [split_image(root / "left.png", 12, width=width), split_image(root / "right.png", 16, width=width)]
     out = root / "pred"
     argv = ["--ckpt", str(ckpt), "--out", str(out), "--novel-frames", "4", "--no-progress", "--threads", "2"]
     assert main([*argv, *extra, *map(str, images)]) == 0

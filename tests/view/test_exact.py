@@ -19,15 +19,11 @@ def predicted(tmp_path_factory):
     """The prediction folder, and predict's own renders of its input cameras at each SH degree."""
     folder, ckpt, images = make_prediction(tmp_path_factory.mktemp("view"))
     loaded = load_checkpoint(ckpt)
-    pixels = torch.stack([load_image(p, IMAGE_SIZE) for p in images])
+    pixels = torch.stack([load_image(p, IMAGE_SIZE).image for p in images])
     pred = predict_scene(loaded.model, pixels)
     options = {**loaded.render.get("options", {}), "background": loaded.background}
-    expected = {
-        degree: render_views(
-            pred.gaussians, pred.extrinsics, pred.intrinsics, IMAGE_SIZE, {**options, "sh_degree": degree}
-        )  # fmt: skip
-        for degree in (0, SH_DEGREE)
-    }
+    cameras = (pred.gaussians, pred.extrinsics, pred.intrinsics, IMAGE_SIZE, IMAGE_SIZE)
+    expected = {degree: render_views(*cameras, {**options, "sh_degree": degree}) for degree in (0, SH_DEGREE)}
     return folder, ckpt, images, expected
 
 
@@ -57,6 +53,16 @@ def test_exact_mode_matches_the_renders_predict_saved(predicted):
     scene = scene_from_path(folder)
     for cam, image in zip(scene.cameras, exact_renders(scene, SH_DEGREE)):
         saved = np.asarray(Image.open(folder / "renders" / f"{scene.cameras.index(cam):02d}_{cam.name}.png"))
+        assert np.abs(to_uint8(image).astype(int) - saved.astype(int)).max() <= 1
+
+
+def test_exact_mode_matches_predict_on_wide_photos(tmp_path):
+    folder, _, _ = make_prediction(tmp_path, width=2 * IMAGE_SIZE)  # the model sees them 28 x 56, uncropped
+    scene = scene_from_path(folder)
+    assert (scene.cameras[0].height, scene.cameras[0].width) == (IMAGE_SIZE, 2 * IMAGE_SIZE)
+    for i, image in enumerate(exact_renders(scene, SH_DEGREE)):
+        saved = np.asarray(Image.open(folder / "renders" / f"{i:02d}_{scene.cameras[i].name}.png"))
+        assert saved.shape == (IMAGE_SIZE, 2 * IMAGE_SIZE, 3)
         assert np.abs(to_uint8(image).astype(int) - saved.astype(int)).max() <= 1
 
 

@@ -30,6 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--ckpt", default=None, help="predict from the images with this checkpoint, then view")
     parser.add_argument("--size", type=int, default=None,
                         help="with --ckpt: the model's square input side (default: its own)")  # fmt: skip
+    parser.add_argument("--crop", choices=("none", "square"), default="none",
+                        help="with --ckpt: as `aesplat predict --crop`")  # fmt: skip
     parser.add_argument("--host", default=defaults.host,
                         help="address to listen on; 0.0.0.0 shares the viewer with the network")  # fmt: skip
     parser.add_argument("--port", type=int, default=defaults.port, help="port (0: any free port)")
@@ -62,7 +64,9 @@ def start_viewer(args: argparse.Namespace):
         raise UserError(f"--port {args.port} is not a port number (0..65535)")
     device = resolve_device(args.device)
     if args.ckpt:
-        scene = scene_from_checkpoint(args.ckpt, args.inputs, size=args.size, device=str(device))
+        scene = scene_from_checkpoint(
+            args.ckpt, args.inputs, size=args.size, crop=args.crop, device=str(device)
+        )
     elif len(args.inputs) == 1:
         scene = scene_from_path(args.inputs[0])
     else:

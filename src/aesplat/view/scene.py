@@ -94,15 +94,19 @@ def scene_from_checkpoint(
     images: list[str],
     *,
     size: int | None = None,
-    device: str = "auto",
+    crop: str = "none",
+    device: str = "cpu",
     path_frames: int = 30,
 ) -> ViewScene:
-    """Predict a scene from ``images`` with the checkpoint ``ckpt`` (in memory; nothing is written)."""
+    """Predict a scene from ``images`` with the checkpoint ``ckpt`` as ``aesplat predict`` does (the first
+    photo's shape for every view, ``size`` its shorter side, ``crop`` as ``--crop``), in memory: nothing is
+    written."""
     from ..predict import (
-        PATCH,
         interpolate_cameras,
         load_checkpoint,
         load_image,
+        model_image_shape,
+        photo_size,
         predict_scene,
         resolve_device,
     )
@@ -114,18 +118,23 @@ def scene_from_checkpoint(
     if loaded.cameras != "predicted":
         raise UserError(f"{ckpt} was trained with model.cameras={loaded.cameras}: it predicts no cameras for "
                         "images; view it with a checkpoint trained with model.cameras=predicted")  # fmt: skip
-    size = size or loaded.image_size
-    if size % PATCH != 0:
-        raise UserError(f"--size {size} is not a multiple of the patch size {PATCH}")
+    loaded.model.check_context_views(len(images))
+    size, patch = size or loaded.image_size, loaded.patch_size
+    if size % patch != 0:
+        raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
     background = loaded.background
-    pixels = torch.stack([load_image(p, size, tuple(background.tolist())) for p in images]).to(dev)
+    shape = model_image_shape(*photo_size(images[0]), size, patch, crop)
+    inputs = [load_image(p, size, tuple(background.tolist()), patch=patch, shape=shape) for p in images]
+    pixels = torch.stack([i.image for i in inputs]).to(dev)
     try:
         pred = predict_scene(loaded.model, pixels)
-    except ValueError as err:  # e.g. more images than the context views the checkpoint was built for
+    except ValueError as err:
         raise UserError(str(err)) from None
     ext, intr = pred.extrinsics.cpu(), pred.intrinsics.cpu()
+    height, width = shape
     cameras = [
-        ViewCamera(Path(p).stem, _uint8(pixels[i]), ext[i], intr[i], size, size) for i, p in enumerate(images)
+        ViewCamera(Path(p).stem, _uint8(pixels[i]), ext[i], intr[i], width, height)
+        for i, p in enumerate(images)
     ]
     path_ext, path_int = interpolate_cameras(ext, intr, path_frames)
     options = dict(loaded.render.get("options", {}))
