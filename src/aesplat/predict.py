@@ -13,6 +13,9 @@ writes
     DIR/renders/          the input views re-rendered from the Gaussians with the predicted cameras
     DIR/depth/            predicted depth per input view: colour-mapped PNG and raw float32 .npy
     DIR/novel/            frames along a path through the predicted input cameras, and trajectory.gif
+    DIR/colmap/, DIR/nerfstudio/, DIR/gaussians.splat
+                          with ``--export colmap,nerfstudio,splat`` (see aesplat.export; ``aesplat export``
+                          writes them from a prediction folder later)
 
 DIR is written whole: into a hidden folder beside it, renamed into place once everything is written (a
 failure leaves DIR as it was). A non-empty DIR is refused unless ``--overwrite``, which replaces it as a whole.
@@ -40,7 +43,14 @@ from torch import Tensor
 from tqdm import tqdm
 
 from .errors import MissingFileError, UserError, check_writable, run_reporting_user_errors
-from .export import VIEWER_MAX_SH_DEGREE, drop_transparent, write_ply
+from .export import (
+    EXPORTS,
+    VIEWER_MAX_SH_DEGREE,
+    drop_transparent,
+    export_prediction,
+    parse_formats,
+    write_ply,
+)
 from .geometry import (
     denormalize_intrinsics,
     focal_to_fov,
@@ -516,11 +526,22 @@ def write_outputs(
             camera_record(novel_ext[f].cpu(), novel_int[f].cpu(), height, width) for f in range(novel_frames)
         ],
         "gaussians": {"count": gaussians.num_gaussians, "ply_sh_degree": degree, "min_opacity": min_opacity},
+        # what the renders were made with, so that a viewer renders the same images from these files
+        "render": _render_record(render_options),
     }
     (out_dir / "cameras.json").write_text(compact_json(cameras))
     bar.update(1)
     bar.close()
     return cameras
+
+
+def _render_record(render_options: dict | None) -> dict:
+    """The background and renderer options of ``render_options`` as JSON (the backend is the machine's)."""
+    options = dict(render_options or {})
+    background = options.pop("background", None)
+    options.pop("backend", None)
+    background = [0.0, 0.0, 0.0] if background is None else torch.as_tensor(background).tolist()
+    return {"background": background, "options": options}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -573,6 +594,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "viewers read)")  # fmt: skip
     parser.add_argument("--min-opacity", type=float, default=0.0,
                         help="leave Gaussians below this opacity out of the PLY")  # fmt: skip
+    parser.add_argument("--export", default=None, metavar="FORMATS",
+                        help="also write these exports, comma-separated: colmap (DIR/colmap/), "
+                        "nerfstudio (DIR/nerfstudio/), splat (DIR/gaussians.splat); see `aesplat export "
+                        "--help`")  # fmt: skip
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, ... (auto: cuda if available)")
     parser.add_argument("--backend", default="auto", help="renderer backend: auto, torch or gsplat")
     parser.add_argument("--threads", type=int, default=None,
@@ -640,6 +665,7 @@ def _predict(args: argparse.Namespace) -> int:
         raise UserError("--novel-frames must be at least 2")
     out_dir = Path(args.out)
     check_output_dir(out_dir, args.overwrite)
+    exports = parse_formats(args.export) if args.export is not None else []
     device = resolve_device(args.device)
     loaded = load_checkpoint(args.ckpt, device)
     if loaded.cameras != "predicted":
@@ -674,9 +700,11 @@ def _predict(args: argparse.Namespace) -> int:
             min_opacity=args.min_opacity, render_options=options, progress=not args.no_progress,
             sources=[i.crop_record() for i in inputs],
         )  # fmt: skip
+        export_prediction(staging, exports)
+    written = "".join(", " + EXPORTS[name].dest for name in exports)
     print(f"aesplat predict: {len(inputs)} views of {shape[1]}x{shape[0]} pixels; wrote "
           f"{out_dir / 'gaussians.ply'} ({pred.gaussians.num_gaussians:,} Gaussians), cameras.json, inputs/, "
-          f"renders/, depth/, novel/ under {out_dir}")  # fmt: skip
+          f"renders/, depth/, novel/{written} under {out_dir}")  # fmt: skip
     for name, i in zip(names, inputs):
         if i.cropped:
             left, top, right, bottom = (round(c) for c in i.crop)
