@@ -3,7 +3,7 @@ name exists, and the configuration reference can be generated from the code.
 
 Commands are taken from code blocks (fenced or indented) and inline code spans of README.md and docs/**/*.md.
 `aesplat fit|validate|test` lines are parsed by the parser of the real LightningCLI (nothing runs);
-`aesplat predict|bench` lines and `python data_prep|benchmarks|scripts/NAME.py` lines by their own argparse
+`aesplat predict|bench|view|export` lines and `python data_prep|benchmarks|scripts/NAME.py` lines by their own argparse
 parsers. ``--ckpt_path FILE`` is dropped before parsing (LightningCLI would read the checkpoint's
 hyper-parameters from the file), so is ``--print_config`` (it prints and exits), and lines that show a choice
 or an elision (``fit|validate|test``, ``…``) are templates, not commands.
@@ -25,7 +25,13 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
-SUBCOMMANDS = ("fit", "validate", "test", "predict", "bench")
+SUBCOMMANDS = ("fit", "validate", "test", "predict", "bench", "view", "export")
+APPS = {  # the commands with an argparse parser of their own, by module
+    "predict": "aesplat.predict",
+    "bench": "aesplat.bench",  # accuracy against time
+    "view": "aesplat.view.command",
+    "export": "aesplat.export.command",
+}
 
 
 def _code_lines(text: str) -> list[str]:
@@ -97,9 +103,7 @@ def _argv(command: str) -> list[str]:
 
 
 def _app_module(subcommand: str):
-    if subcommand == "predict":
-        return importlib.import_module("aesplat.predict")
-    return importlib.import_module("aesplat.bench")  # `aesplat bench`: accuracy against time
+    return importlib.import_module(APPS[subcommand])
 
 
 def _script_commands(text: str) -> list[str]:
@@ -210,7 +214,7 @@ def test_documented_command_parses(page, command, monkeypatch, lightning_parser)
     ):  # an overlay alone parses, but runs the defaults: its base must come first
         missing = [base for base in _bases(config) if base not in files[:i]]
         assert not missing, f"{page}: `{command}` layers {config} without {missing} before it"
-    if argv[0] in ("predict", "bench"):
+    if argv[0] in APPS:
         parser = _app_module(argv[0]).build_parser()
         parser.parse_args(argv[1:])  # argparse exits (SystemExit 2) on an unknown or malformed argument
         return
