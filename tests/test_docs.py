@@ -3,8 +3,8 @@ name exists, and the configuration reference can be generated from the code.
 
 Commands are taken from code blocks (fenced or indented) and inline code spans of README.md and docs/**/*.md.
 `aesplat fit|validate|test` lines are parsed by the parser of the real LightningCLI (nothing runs);
-`aesplat predict|bench|view|export` lines and `python data_prep|benchmarks|scripts/NAME.py` lines by their own argparse
-parsers. ``--ckpt_path FILE`` is dropped before parsing (LightningCLI would read the checkpoint's
+`aesplat predict|bench|view|export` lines and `python data_prep|benchmarks|scripts/NAME.py` lines by their own
+argparse parsers. ``--ckpt_path FILE`` is dropped before parsing (LightningCLI would read the checkpoint's
 hyper-parameters from the file), so is ``--print_config`` (it prints and exits), and lines that show a choice
 or an elision (``fit|validate|test``, ``…``) are templates, not commands.
 """
