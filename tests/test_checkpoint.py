@@ -160,7 +160,9 @@ def test_the_image_size_travels_with_the_checkpoint(tiny, tmp_path):
     assert load_checkpoint(record).image_size == 42
     bare = tmp_path / "bare.ckpt"
     torch.save(tiny["ckpt"], bare)
-    assert load_checkpoint(bare).image_size is None
+    assert load_checkpoint(bare).trained_size is None
+    with pytest.raises(UserError, match="bare.ckpt does not say which image size it was trained at"):
+        _ = load_checkpoint(bare).image_size
     assert load_checkpoint(tiny["path"]).image_size == 28  # the run's config.yaml
 
 
@@ -168,5 +170,5 @@ def test_options_of_older_checkpoints_load_typed(tiny, tmp_path):
     """Checkpoints store only the options that were set: they load into the typed sections."""
     path = crafted(tiny, tmp_path, render={"options": {"tile_size": 16}})
     loaded = load_checkpoint(path)
-    assert loaded.render.options.tile_size == 16 and loaded.render.options.chunk == 32
+    assert loaded.render["options"]["tile_size"] == 16 and loaded.render["options"]["chunk"] == 32
     assert loaded.render_options()["tile_size"] == 16 and "backend" not in loaded.render_options()

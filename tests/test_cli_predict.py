@@ -141,7 +141,7 @@ def test_the_image_size_is_never_guessed(ckpt, tmp_path, capsys):
     images = photos(tmp_path / "in")
     code, line = predict(capsys, "--ckpt", str(bare), "--out", str(tmp_path / "out"), *images)
     assert code == 1 and line == (
-        f"aesplat predict: --ckpt {bare} does not say which image size it was trained at (it is not in its run "
+        f"aesplat predict: {bare} does not say which image size it was trained at (it is not in its run "
         "folder beside the run's config.yaml): give --size, the run's data.image_size"
     )
     recorded = tmp_path / "recorded.ckpt"

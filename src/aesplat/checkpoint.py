@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Literal, Union
 
@@ -276,20 +276,21 @@ def resolve_ckpt_path(value: str, run_dir: str | Path, monitor: str = "val/psnr"
 class LoadedCheckpoint:
     """A trained model restored from an ``aesplat fit`` checkpoint, with what the run was configured with.
 
-    net         the checkpoint's ``net`` hyper-parameters (arguments of ``build_model``)
-    render      the rasterizer the run evaluated with (backend, background, settings)
-    data        the ``data`` section of the run's config.yaml (None when the file is not beside the checkpoint)
-    image_size  the square side the model was trained at (None when neither the checkpoint nor its run says)
-    cameras     ``model.cameras`` of the run: ``predicted``, or ``dataset`` (trained with the data set's
-                cameras; its camera head is untrained, so the model needs each view's camera: forward_batch)
+    net           the checkpoint's ``net`` hyper-parameters (arguments of ``build_model``)
+    render        the checkpoint's ``render`` hyper-parameters, checked and complete (backend, background,
+                  options: every ``RenderSettings`` field)
+    data          the ``data`` section of the run's config.yaml (None when it is not beside the checkpoint)
+    trained_size  the square side the model was trained at (None when neither the checkpoint nor its run says)
+    cameras       ``model.cameras`` of the run: ``predicted``, or ``dataset`` (trained with the data set's
+                  cameras; its camera head is untrained, so the model needs each view's camera: forward_batch)
     """
 
     model: torch.nn.Module
     net: dict
-    render: RasterizerConfig
+    render: dict
     data: dict | None
     path: Path
-    image_size: int | None = None
+    trained_size: int | None = None
     cameras: str = "predicted"
 
     @property
@@ -298,20 +299,29 @@ class LoadedCheckpoint:
 
     @property
     def patch_size(self) -> int:
-        """The encoder's patch side: the model's input side must be a multiple of it."""
+        """Pixels per patch side of the model's encoder: image sides must be multiples of it."""
         return int(self.model.cfg.encoder.patch_size)
+
+    @property
+    def image_size(self) -> int:
+        """The side the model was trained at; UserError when the checkpoint does not say (it is never guessed:
+        the commands ask for the size instead)."""
+        if self.trained_size is None:
+            raise UserError(
+                f"{self.path} does not say which image size it was trained at (it is not in its run folder "
+                "beside the run's config.yaml): give --size, the run's data.image_size"
+            )
+        return self.trained_size
 
     @property
     def background(self) -> Tensor:
         """Render background colour [3] the run evaluated with."""
-        return torch.tensor(self.render.background, dtype=torch.float32)
+        return torch.tensor(self.render["background"], dtype=torch.float32)
 
     def render_options(self, device: torch.device | str = "cpu") -> dict[str, Any]:
         """Keyword arguments of ``aesplat.render.render`` as the run evaluated: its settings and background
         (``backend`` is the caller's to choose)."""
-        options = self.render.render_kwargs()
-        options.pop("backend")
-        return {**options, "background": self.background.to(device)}
+        return {**self.render["options"], "background": self.background.to(device)}
 
 
 def run_config(ckpt: Path) -> dict | None:
@@ -367,7 +377,8 @@ def load_checkpoint(
         ) from None
     model.to(device).eval()
     data = (run_config(path) or {}).get("data")
+    render = asdict(RasterizerConfig(**dict(hparams.get("render") or {})))  # every setting, checked
     return LoadedCheckpoint(
-        model, net, RasterizerConfig(**dict(hparams.get("render") or {})), data, path,
-        image_size=trained_image_size(ckpt, data), cameras=hparams.get("cameras", "predicted"),
+        model, net, render, data, path,
+        trained_size=trained_image_size(ckpt, data), cameras=hparams.get("cameras", "predicted"),
     )  # fmt: skip

@@ -112,14 +112,16 @@ def in_this_process_only(handler: Callable[[int, object], None]) -> Callable[[in
 
 
 def _raise_stopped(signum: int, frame: object) -> None:
+    if signum == signal.SIGINT:  # as Python does: code that ends on Ctrl-C (a server) catches it
+        raise KeyboardInterrupt
     raise Stopped(signum)
 
 
 @contextmanager
 def stopping_on_signals() -> Iterator[None]:
-    """SIGTERM, SIGINT and SIGHUP raise :class:`Stopped` in this process's main thread while the block runs
-    (so ``finally`` blocks and staging cleanups run, where SIGTERM's default would kill the process on the
-    spot); processes forked meanwhile ignore them (:func:`in_this_process_only`)."""
+    """SIGTERM and SIGHUP raise :class:`Stopped`, SIGINT KeyboardInterrupt, in this process's main thread
+    while the block runs (so ``finally`` blocks and staging cleanups run, where SIGTERM's default would kill
+    the process on the spot); processes forked meanwhile ignore them (:func:`in_this_process_only`)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -150,3 +152,7 @@ def run_reporting_user_errors(command: str, fn: Callable[[], T]) -> T:
         fail(command, err.message, 128 + err.signum)
     except KeyboardInterrupt:
         fail(command, "stopped by SIGINT", 128 + signal.SIGINT)
+    except SystemExit as err:  # Lightning ends a KeyboardInterrupt with sys.exit(1)
+        if err.code == 1 and isinstance(err.__context__, KeyboardInterrupt):
+            fail(command, "stopped by SIGINT", 128 + signal.SIGINT)
+        raise
