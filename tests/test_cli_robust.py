@@ -142,7 +142,7 @@ def test_a_fit_that_fails_before_its_first_checkpoint_leaves_nothing(shards, cap
     argv = ["fit", *common(shards, run), "--seed_everything", "false"]
     with pytest.raises(RuntimeError, match="the first step failed"):
         cli.run_lightning(argv, module_class=FailsAtTheFirstStep)
-    assert "nothing was trained, so what this run wrote" in capsys.readouterr().err
+    assert f"nothing was trained: removed config.yaml from {run}, so the corrected" in capsys.readouterr().err
     assert not run.exists()  # so the corrected command is not refused as "already holds a run"
 
 

@@ -19,9 +19,9 @@ evaluation never changes the training run's files.
 ``fit`` refuses a run directory that already holds a run unless ``--ckpt_path last`` (resume) or
 ``--overwrite`` (delete it and start afresh; never a folder holding the current one, the home folder or one
 of the run's inputs), and a run directory another ``aesplat fit`` is training in (a lock). A fit that stops
-before its first checkpoint takes back what it wrote. Checkpoints are written atomically
-(``aesplat.train.checkpoint_io``); a fit stopped by a signal saves where it stopped and exits with 128 + the
-signal (``aesplat.train.signals``).
+before its first checkpoint takes back its run markers (config.yaml, wandb id). Checkpoints are written
+atomically (``aesplat.train.checkpoint_io``); a fit stopped by a signal saves where it stopped and exits with
+128 + the signal (``aesplat.train.signals``).
 
 ``--ckpt_path FILE|last|best`` goes through ``aesplat.checkpoint``, the loading path every command shares:
 ``last`` is the newest checkpoint of the run directory that loads (``fit`` starts fresh when there is none),
@@ -117,7 +117,7 @@ def _lightning_cli():
                                  overwrite=True, multifile=self.multifile)  # fmt: skip
 
     class AESplatCLI(LightningCLI):
-        # Called when the command fails or stops (a fit that never saved a checkpoint takes back its files).
+        # Called when the command fails or stops (a fit that saved no checkpoint takes back its run markers).
         on_failure: list[Callable[[], object]] = []
 
         @staticmethod

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from aesplat.errors import UserError
-from aesplat.train.run_dir import FitWrites, lock_run, unlock_run, wandb_mode, wandb_run_id
+from aesplat.train.run_dir import FitWrites, lock_run, run_artifacts, unlock_run, wandb_mode, wandb_run_id
 
 
 def test_wandb_run_id_is_created_once_per_directory(tmp_path):
@@ -62,11 +62,25 @@ def test_a_fit_that_never_saved_takes_back_what_it_wrote(tmp_path):
     lock_run(run)
     writes.snapshot()
     (run / "config.yaml").write_text("model: {}")
-    (run / "wandb").mkdir()
+    (run / "wandb_run_id").write_text("abc\n")
     (run / "checkpoints").mkdir()
     (run / "checkpoints" / ".last.ckpt.ab12.partial").write_bytes(b"half")
-    assert writes.discard_if_untrained() == ["checkpoints/", "config.yaml", "wandb/"]
-    assert not run.exists()  # it did not exist before this fit
+    assert writes.discard_if_untrained() == ["config.yaml", "wandb_run_id"]
+    assert not run.exists()  # it did not exist before this fit, and nothing else is in it
+
+
+def test_what_a_failure_leaves_to_read_stays(tmp_path):
+    """The run markers go; the wandb logs and a non-finite step's report, which the error points at, stay."""
+    run = tmp_path / "run"
+    writes = FitWrites(run)
+    run.mkdir()
+    writes.snapshot()
+    (run / "config.yaml").write_text("model: {}")
+    (run / "wandb").mkdir()
+    (run / "nonfinite_step0.txt").write_text("the operation that went NaN")
+    assert writes.discard_if_untrained() == ["config.yaml"]
+    assert sorted(p.name for p in run.iterdir()) == ["nonfinite_step0.txt", "wandb"]
+    assert run_artifacts(run) == []  # nothing left that refuses the corrected command
 
 
 def test_a_fit_with_a_checkpoint_or_an_earlier_run_keeps_them(tmp_path):

@@ -4,14 +4,13 @@ The wandb run id is stored in the folder, so a resumed or requeued run continues
 ``aesplat test`` / ``validate`` writes into a folder of its own inside it (``test-<UTC time>/``, the newest
 behind the link ``test-latest``), so an evaluation never changes the training run's files. One ``aesplat fit``
 at a time trains in a run folder (:func:`lock_run`), and a fit that stops before its first checkpoint takes
-back what it wrote (:class:`FitWrites`), so the corrected command is not refused as "already holds a run".
+back its run markers (:class:`FitWrites`), so the corrected command is not refused as "already holds a run".
 """
 
 from __future__ import annotations
 
 import fcntl
 import os
-import shutil
 import socket
 import sys
 import uuid
@@ -109,10 +108,10 @@ def unlock_run(run_dir: str | Path) -> None:
 
 
 class FitWrites:
-    """What one ``aesplat fit`` adds to its run folder, so that a fit that fails or stops before its first
-    checkpoint can take it back: whether the folder existed is noted when this is made, its entries when the
-    fit is about to write (:meth:`snapshot`), and :meth:`discard_if_untrained` removes what appeared since,
-    while no checkpoint exists."""
+    """What one ``aesplat fit`` adds to its run folder that would mark the folder as holding a run, so that a
+    fit that fails or stops before its first checkpoint can take it back and the corrected command is not
+    refused: whether the folder existed is noted when this is made, its entries when the fit is about to
+    write (:meth:`snapshot`). What a failure leaves to read (wandb logs, a non-finite step's report) stays."""
 
     def __init__(self, run_dir: str | Path) -> None:
         self.run_dir = Path(run_dir)
@@ -125,30 +124,29 @@ class FitWrites:
         self.before = {p.name for p in self.run_dir.iterdir()} if self.run_dir.is_dir() else set()
 
     def discard_if_untrained(self) -> list[str]:
-        """Remove what this fit wrote when the run holds no checkpoint; returns the names removed."""
-        remove_partials(self.run_dir / "checkpoints")
+        """When the run holds no checkpoint, remove the run markers this fit wrote (``config.yaml``, the wandb
+        id, an empty ``checkpoints/``), and the folder itself if this fit made it and nothing else is in it;
+        returns the names removed."""
+        checkpoints = self.run_dir / "checkpoints"
+        remove_partials(checkpoints)
         if not self.run_dir.is_dir() or run_checkpoint_files(self.run_dir):
             return []
         removed = []
-        for entry in sorted(self.run_dir.iterdir()):
-            if entry.name in self.before or entry.name == LOCK_FILE:
-                continue
-            if entry.is_dir() and not entry.is_symlink():
-                shutil.rmtree(entry, ignore_errors=True)
-                removed.append(entry.name + "/")
-            else:
-                with suppress(FileNotFoundError):
-                    entry.unlink()
-                removed.append(entry.name)
-        if not self.existed:
+        for name in ("config.yaml", WANDB_ID_FILE):
+            if name not in self.before and (self.run_dir / name).is_file():
+                (self.run_dir / name).unlink()
+                removed.append(name)
+        if "checkpoints" not in self.before and checkpoints.is_dir() and not any(checkpoints.iterdir()):
+            checkpoints.rmdir()
+        if not self.existed and {p.name for p in self.run_dir.iterdir()} <= {LOCK_FILE}:
             unlock_run(self.run_dir)
             with suppress(FileNotFoundError):
                 (self.run_dir / LOCK_FILE).unlink()
             with suppress(OSError):
                 self.run_dir.rmdir()
         if removed:
-            print(f"aesplat fit: nothing was trained, so what this run wrote in {self.run_dir} was removed "
-                  f"({', '.join(removed)})", file=sys.stderr)  # fmt: skip
+            print(f"aesplat fit: nothing was trained: removed {', '.join(removed)} from {self.run_dir}, so the "
+                  "corrected command can start there", file=sys.stderr)  # fmt: skip
         return removed
 
 
