@@ -156,9 +156,8 @@ def test_corrupt_data_counters_reach_the_main_process_from_workers(synthetic_sha
     data = shards[0].read_bytes()
     shards[0].write_bytes(data[: len(data) // 2 + 100])  # truncated after its first scene
     scenes = list(read_tar(shards[1]))
-    for name in scenes[0][1]:  # every frame of its first scene is garbage
-        if name.endswith(".jpg"):
-            scenes[0][1][name] = b"\xff\xd8 this is not a JPEG"
+    blob = scenes[0][1]["frames.jpgs"]  # every frame of its first scene is garbage
+    scenes[0][1]["frames.jpgs"] = bytes(len(blob))
     write_tar(shards[1], scenes)
     dm = module(tmp_path / "shards", num_workers=2, train_batches_per_epoch=12, batch_size=1)
     assert len(list(dm.train_dataloader())) == 12  # the stream keeps going around the bad data
@@ -294,14 +293,14 @@ def test_examples_per_scene_reads_each_scene_once_for_several_examples(synthetic
     from aesplat.data import stream
 
     reads = []
-    real = stream.read_tar
+    real = stream.index_scenes
 
     def counting(path):
-        for key, raw in real(path):
-            reads.append(key)
-            yield key, raw
+        for entry in real(path):
+            reads.append(entry.key)
+            yield entry
 
-    monkeypatch.setattr(stream, "read_tar", counting)
+    monkeypatch.setattr(stream, "index_scenes", counting)
     drawn = {}
     for per_scene in (1, 4):
         reads.clear()
@@ -465,10 +464,12 @@ def old_layout_copy(src, dst) -> None:
                 if split == "train":  # one pre-drawn sample per scene: frames 0, 4 and 2 between
                     frames = [0, 4, 2]
                     cams = [np.load(io.BytesIO(raw[n]))[frames] for n in ("extrinsics.npy", "intrinsics.npy")]
+                    at = np.load(io.BytesIO(raw["frames.offsets.npy"]))
+                    jpeg = [raw["frames.jpgs"][at[f] : at[f + 1]] for f in frames]
                     raw = {
-                        "ctx0.jpg": raw["f00000.jpg"],
-                        "ctx1.jpg": raw["f00004.jpg"],
-                        "tgt0.jpg": raw["f00002.jpg"],
+                        "ctx0.jpg": jpeg[0],
+                        "ctx1.jpg": jpeg[1],
+                        "tgt0.jpg": jpeg[2],
                         "extrinsics.npy": _npy(cams[0]),
                         "intrinsics.npy": _npy(cams[1]),
                     }
@@ -534,6 +535,22 @@ def test_tars_that_are_not_shards_are_refused(tmp_path):
         UserError, match="photos.tar is not a shard of aesplat .its first sample beach has no meta"
     ):
         module(tmp_path).test_dataloader()
+    from aesplat import cli
+
+    with pytest.raises(SystemExit) as verdict:  # `aesplat test` says so in one line instead of 0 scenes
+        cli.main(
+            [
+                "test",
+                "-c",
+                str(Path(__file__).resolve().parents[2] / "conf" / "smoke.yaml"),
+                "--data.root",
+                str(tmp_path),
+                "--trainer.default_root_dir",
+                str(tmp_path / "run"),
+            ]
+        )
+    assert str(verdict.value).startswith("aesplat test: ") and "is not a shard of aesplat" in str(verdict.value)
+    assert "\n" not in str(verdict.value) and not (tmp_path / "run").exists()
     (tmp_path / "test" / "photos.tar").write_bytes(b"not a tar at all" * 100)
     with pytest.raises(UserError, match="not a readable tar archive"):
         module(tmp_path).test_dataloader()

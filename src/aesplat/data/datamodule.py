@@ -72,7 +72,8 @@ class DataModule(L.LightningDataModule):
             end of its range); shards carry k-view contexts up to ``to_shards.py --eval-context-views``.
         validate_on_test: validate on the test split when the shards have no validation split (checkpoint
             selection then sees the test scenes; the logs say so at every validation).
-        shuffle_buffer: examples held per worker for shuffling (each holds its whole scene's bytes).
+        shuffle_buffer: examples held per worker for shuffling (each holds its scene's small members; frames are
+            read from the shard when picked).
         seed: base seed of the training streams (and of the fixed pools).
     """
 

@@ -154,7 +154,7 @@ def probe_shard(path: Path) -> None:
             why = "an empty archive"
         elif "meta.json" not in names:
             why = f"its first sample {key} has no meta.json"
-        elif not any(n.endswith(".jpg") for n in names):
+        elif not any(n.endswith((".jpg", ".jpgs")) for n in names):
             why = f"its first sample {key} has no images"
     if why is not None:
         raise UserError(f"{path} is not a shard of aesplat ({why}); make shards with `{CONVERT} --src SRC "

@@ -11,10 +11,11 @@ made again, so an interrupted conversion resumes and a changed source is never s
 Training shards (layout ``scenes``) hold whole scenes: every frame centre-cropped and resized once; the training
 stream draws its examples from them at run time (:mod:`aesplat.data.sampler`)::
 
-    KEY.meta.json        {"scene", "dataset", "frames": [source frame ids], "layout": "scene"}
-    KEY.extrinsics.npy   float32 [F, 4, 4] camera-to-world in the scene's world frame
-    KEY.intrinsics.npy   float32 [F, 3, 3] normalised, for the cropped image
-    KEY.f00000.jpg …     frame i of the scene as stored (one member each: the loader decodes only what it picks)
+    KEY.meta.json            {"scene", "dataset", "frames": [source frame ids], "layout": "scene"}
+    KEY.extrinsics.npy       float32 [F, 4, 4] camera-to-world in the scene's world frame
+    KEY.intrinsics.npy       float32 [F, 3, 3] normalised, for the cropped image
+    KEY.frames.offsets.npy   int64 [F + 1]: frame i is bytes offsets[i]:offsets[i + 1] of frames.jpgs
+    KEY.frames.jpgs          the frames' JPEGs back to back (last: the loader reads only the frames it picks)
 
 Validation and test shards (layout ``samples``) hold one deterministic sample per scene: the evaluation
 index's frames (or :func:`aesplat.data.sampler.evaluation_sample`), plus the extra context frames of the
@@ -170,7 +171,8 @@ def scene_sample(scene: Scene, cfg: ConvertConfig) -> dict[str, bytes]:
     sample = {"meta.json": json.dumps(meta).encode()}
     sample["extrinsics.npy"] = _npy(scene.c2w[frames].astype(np.float32))
     sample["intrinsics.npy"] = _npy(ks.astype(np.float32))
-    sample.update((f"f{i:05d}.jpg", image) for i, image in enumerate(images))
+    sample["frames.offsets.npy"] = _npy(np.cumsum([0, *map(len, images)]).astype(np.int64))
+    sample["frames.jpgs"] = b"".join(images)
     return sample
 
 

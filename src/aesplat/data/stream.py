@@ -29,6 +29,7 @@ import tarfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -86,6 +87,77 @@ def read_tar(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
             raise tarfile.ReadError(f"archive truncated after {tar.offset} bytes (no end-of-archive marker)")
     if key is not None:
         yield key, sample
+
+
+@dataclass(frozen=True)
+class SceneEntry:
+    """A whole-scene sample as indexed, not read: its small members' bytes (meta, cameras, frame offsets) and
+    where its frames' JPEGs lie in the shard (byte offset and length of ``frames.jpgs``)."""
+
+    shard: str
+    key: str
+    members: dict[str, bytes]
+    frames_at: int
+    frames_size: int
+
+    @property
+    def num_frames(self) -> int:
+        return len(json.loads(self.members["meta.json"])["frames"])
+
+
+def index_scenes(path: str | Path) -> Iterator[SceneEntry]:
+    """The whole-scene samples of a training shard, reading only the headers and the small members: the frames
+    stay on disk until an example picks some (:class:`FrameReader`). Raises ``tarfile.ReadError`` / ``OSError``
+    on a truncated or corrupt shard (the incomplete scene at the point of failure is never yielded)."""
+    size = os.path.getsize(path)
+    key, members, span = None, {}, None
+    with tarfile.open(path, "r:") as tar:  # random access: headers are read, frame bytes are skipped
+        for member in tar:
+            if not member.isfile():
+                continue
+            k, _, ext = member.name.rsplit("/", 1)[-1].partition(".")
+            if member.offset_data + member.size > size:
+                raise tarfile.ReadError(f"member {member.name} truncated")
+            if k != key:
+                if key is not None and span is not None:
+                    yield SceneEntry(str(path), key, members, *span)
+                key, members, span = k, {}, None
+            if ext == "frames.jpgs":
+                span = (member.offset_data, member.size)
+            else:
+                members[ext] = tar.extractfile(member).read()
+        if size - tar.offset < 2 * tarfile.BLOCKSIZE:  # see read_tar: a whole archive ends with two zero blocks
+            raise tarfile.ReadError(f"archive truncated after {tar.offset} bytes (no end-of-archive marker)")
+    if key is not None and span is not None:
+        yield SceneEntry(str(path), key, members, *span)
+
+
+class FrameReader:
+    """Reads a scene's picked frames from its shard, keeping the last few shards open (one reader per worker:
+    it is made empty in each process)."""
+
+    def __init__(self, keep: int = 8) -> None:
+        self.keep = keep
+        self._open: dict[str, Any] = {}
+
+    def frames(self, entry: SceneEntry, picks: list[int]) -> list[bytes]:
+        offsets = np.load(io.BytesIO(entry.members["frames.offsets.npy"]))
+        if offsets[-1] != entry.frames_size or (np.diff(offsets) <= 0).any():
+            raise ValueError(
+                f"frame offsets {offsets[:3]}… do not describe {entry.frames_size} bytes of frames"
+            )
+        f = self._open.pop(entry.shard, None) or open(entry.shard, "rb")  # noqa: SIM115 - kept open, closed below
+        self._open[entry.shard] = f  # most recently used last
+        while len(self._open) > self.keep:
+            self._open.pop(next(iter(self._open))).close()
+        out = []
+        for v in picks:
+            f.seek(entry.frames_at + int(offsets[v]))
+            data = f.read(int(offsets[v + 1] - offsets[v]))
+            if len(data) != offsets[v + 1] - offsets[v]:
+                raise ValueError(f"frame {v} is cut short in {entry.shard}")
+            out.append(data)
+        return out
 
 
 def flip_views(images: Tensor, extrinsics: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -180,15 +252,16 @@ def _flip(example: Example, cfg: StreamConfig, rng: np.random.Generator) -> Exam
     return example
 
 
-def decode_scene_example(raw: dict[str, bytes], pick: ViewPick, cfg: StreamConfig,
+def decode_scene_example(entry: SceneEntry, reader: FrameReader, pick: ViewPick, cfg: StreamConfig,
                          rng: np.random.Generator) -> Example:  # fmt: skip
-    """A training example from a whole-scene sample: only the picked frames are decoded. ``rng`` draws the
-    flip. ``ValueError`` on a bad sample."""
-    meta = json.loads(raw["meta.json"])
+    """A training example from a whole-scene sample: only the picked frames are read and decoded. ``rng`` draws
+    the flip. ``ValueError`` on a bad sample."""
+    meta = json.loads(entry.members["meta.json"])
     frames = list(meta["frames"])
     views = [*pick.context, *pick.target]
-    extrinsics, intrinsics = _cameras(raw, len(frames))
-    images = torch.stack([_image(raw[f"f{v:05d}.jpg"], f"frame {v}", cfg.image_size) for v in views])
+    extrinsics, intrinsics = _cameras(entry.members, len(frames))
+    data = reader.frames(entry, views)
+    images = torch.stack([_image(d, f"frame {v}", cfg.image_size) for v, d in zip(views, data)])
     example = Example(
         images,
         extrinsics[views],
@@ -305,9 +378,11 @@ class _ShardStream(IterableDataset):
         row = 0 if info is None else min(info.id + 1, self.counters.shape[0] - 1)  # one row per process
         self.counters[row, COUNTERS.index(what)] += n
 
-    def _samples(self, shard: str) -> Iterator[tuple[str, dict[str, bytes]]]:
+    def _samples(self, shard: str, scenes: bool = False) -> Iterator:
+        """The samples of a shard (``scenes``: indexed :class:`SceneEntry` objects); a corrupt shard is
+        abandoned at the point of damage, counted and logged."""
         try:
-            yield from read_tar(shard)
+            yield from index_scenes(shard) if scenes else read_tar(shard)
         except (tarfile.TarError, EOFError, OSError, ValueError) as e:
             self._count("corrupt_shards")
             log.warning("skipping the rest of corrupt shard %s: %s (counted in corrupt_shards)", shard, e)
@@ -347,19 +422,19 @@ class TrainStream(_ShardStream):
         (their random streams differ, which is harmless for training)."""
         return partition(self.scenes, role, num_workers) or self.scenes
 
-    def _raw_forever(self, scenes: list[SceneRef], rng: np.random.Generator) -> Iterator[tuple | None]:
-        """(shard, key, raw scene) shuffled forever, each scene read entering the buffer ``examples_per_scene``
-        times; ``None`` marks the end of each pass over the scenes."""
+    def _raw_forever(self, scenes: list[SceneRef], rng: np.random.Generator) -> Iterator[SceneEntry | None]:
+        """Indexed scenes shuffled forever, each scene read entering the buffer ``examples_per_scene`` times;
+        ``None`` marks the end of each pass over the scenes."""
         keys = {safe_key(s.key) for s in scenes}
         shards = sorted({s.shard for s in scenes})
-        buffer: list[tuple[str, str, dict]] = []
+        buffer: list[SceneEntry] = []
         while True:
             read = 0
             for shard in rng.permutation(shards).tolist():
-                for key, raw in self._samples(shard):
-                    if key not in keys:
+                for entry in self._samples(shard, scenes=True):
+                    if entry.key not in keys:
                         continue  # another rank's or worker's scene
-                    buffer.extend([(shard, key, raw)] * self.cfg.examples_per_scene)
+                    buffer.extend([entry] * self.cfg.examples_per_scene)
                     read += self.cfg.examples_per_scene
                     while len(buffer) >= self.shuffle_buffer:
                         yield buffer.pop(int(rng.integers(len(buffer))))
@@ -382,7 +457,7 @@ class TrainStream(_ShardStream):
         role = (wid + done) % nw
         rng = np.random.default_rng([self.seed, self.rank, role, start])
         raw_stream = self._raw_forever(self.worker_scenes(role, nw), rng)
-        draws = _Draws()
+        draws = _Draws(reader=FrameReader())
         for j in range(role, self.batches_per_rank, nw):  # this stream's batches of the epoch
             at = start + j  # the global step batch j is trained at
             count = self.cfg.context_views.at(self.seed, at)
@@ -430,9 +505,9 @@ class TrainStream(_ShardStream):
                         "longer scenes"
                     )
                 continue
-            shard, key, raw = item
+            shard, key = item.shard, item.key
             try:
-                frames = len(json.loads(raw["meta.json"])["frames"])
+                frames = item.num_frames
             except Exception as e:  # noqa: BLE001 - one bad sample must never stop a multi-day run
                 self._count("corrupt_samples")
                 log.warning("skipping corrupt sample %s in %s: %s (counted in corrupt_samples)", key, shard, e)
@@ -456,7 +531,7 @@ class TrainStream(_ShardStream):
                     )
                 continue
             try:
-                example = decode_scene_example(raw, pick, self.cfg, rng)
+                example = decode_scene_example(item, draws.reader, pick, self.cfg, rng)
             except Exception as e:  # noqa: BLE001 - one bad sample must never stop a multi-day run
                 self._count("corrupt_samples")
                 log.warning("skipping corrupt sample %s in %s: %s (counted in corrupt_samples)", key, shard, e)
@@ -468,8 +543,10 @@ class TrainStream(_ShardStream):
 @dataclass
 class _Draws:
     """What one training iterator has drawn so far: passes over the scenes without a usable example, usable
-    examples in the current pass, the scene lengths seen and the (scene, reason) skips already logged."""
+    examples in the current pass, the scene lengths seen and the (scene, reason) skips already logged; and the
+    reader of its frames."""
 
+    reader: FrameReader
     barren_passes: int = 0
     accepted: int = 0
     lengths: set[int] = field(default_factory=set)
