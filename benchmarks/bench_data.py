@@ -3,7 +3,7 @@
 pipeline at ``--baseline``) against scene shards (this checkout), side by side in one run.
 
     python benchmarks/bench_data.py [--baseline c5c0f51] [--work outputs/bench_data] [--out docs/results/data]
-        [--size 224 --re10k-size 256 --batch-size 10 --workers 2 --batches 40 --repeats 2]
+        [--size 224 --re10k-size 256 --batch-size 10 --workers 2 --batches 100 --repeats 5]
 
 Two sources, made once into ``--work`` (kept for the next call): the synthetic set as the earlier figures
 measured it (16 training and 4 test scenes of 32 frames at 180x320), and a RealEstate10K-layout chunk source
@@ -16,8 +16,9 @@ its own. Each converts both sources (2 processes; synthetic at ``--size``, RealE
 DataModule: ``--workers`` DataLoader workers, ``--size`` images, batch ``--batch-size``, flip augmentation on,
 2 context and 1 target views, in the first curriculum phase (the smallest gap only: the paper's 25 frames
 for the RealEstate10K layout) and with every gap allowed; scene shards also with ``examples_per_scene`` 4.
-Loader runs alternate between the pipelines, ``--repeats`` times, so a change in the machine's load hits both.
-The load average is recorded around every measurement.
+Conversions run ``--repeats`` times and loader runs ``--repeats`` times per case, alternating between the
+pipelines, so a change in the machine's load hits both; the tables give the median and the range (on a shared
+machine other processes only ever slow a run down). The load average is recorded around every measurement.
 
 Writes ``--out``/bench_data.json (every figure, the date, commit, machine and load) and
 ``--out``/bench_data.md (the table the docs page includes).
@@ -77,31 +78,27 @@ def git(*args: str) -> str:
 # ----------------------------------------------------------------------------------------------- one pipeline
 
 
-def run_pipeline(name: str, work: Path, size: int, re10k_size: int) -> dict:
-    """In the subprocess: convert both sources with whichever ``aesplat`` is importable, return its figures."""
-    from aesplat.data import DataModule, convert_dataset
+def run_pipeline(name: str, work: Path, size: int, re10k_size: int, source: str) -> dict:
+    """In the subprocess: convert ``source`` with whichever ``aesplat`` is importable, return its figures."""
+    from aesplat.data import convert_dataset
 
-    scene_shards = hasattr(DataModule(root=str(work)), "examples_per_scene")
-    figures: dict = {"pipeline": name, "scene_shards": scene_shards, "conversion": {}}
-    for source in SOURCES:
-        out = work / name / source
-        shutil.rmtree(out, ignore_errors=True)  # timed from scratch, never resumed
-        shard_size = re10k_size if source == "re10k-layout" else size
-        before, start = load(), time.perf_counter()
-        manifest = convert_dataset(work / "src" / source, out, size=shard_size, workers=2, progress=False)
-        seconds = time.perf_counter() - start
-        splits = manifest["splits"]
-        figures["conversion"][source] = {
-            "size": shard_size,
-            "seconds": seconds,
-            "scenes": sum(e["scenes"] for e in splits.values()),
-            "train_scenes": splits["train"]["scenes"],
-            "train_bytes": sum(s["bytes"] for s in splits["train"]["shards"]),
-            "test_scenes": splits["test"]["scenes"],
-            "test_bytes": sum(s["bytes"] for s in splits["test"]["shards"]),
-            "load": [before, load()],
-        }
-    return figures
+    out = work / name / source
+    shutil.rmtree(out, ignore_errors=True)  # timed from scratch, never resumed
+    shard_size = re10k_size if source == "re10k-layout" else size
+    before, start = load(), time.perf_counter()
+    manifest = convert_dataset(work / "src" / source, out, size=shard_size, workers=2, progress=False)
+    seconds = time.perf_counter() - start
+    splits = manifest["splits"]
+    return {
+        "size": shard_size,
+        "seconds": seconds,
+        "scenes": sum(e["scenes"] for e in splits.values()),
+        "train_scenes": splits["train"]["scenes"],
+        "train_bytes": sum(s["bytes"] for s in splits["train"]["shards"]),
+        "test_scenes": splits["test"]["scenes"],
+        "test_bytes": sum(s["bytes"] for s in splits["test"]["shards"]),
+        "load": [before, load()],
+    }
 
 
 def loader_rate(name: str, work: Path, source: str, gap: tuple[int, int], size: int, batch_size: int,
@@ -161,37 +158,46 @@ def baseline_source(ref: str, work: Path) -> Path:
     return folder / "src"
 
 
+def spread(values: list[float], pattern: str) -> str:
+    """Median (lowest–highest) of repeated measurements."""
+    low, high = pattern.format(min(values)), pattern.format(max(values))
+    return f"{pattern.format(statistics.median(values))} ({low}–{high})"
+
+
 def table(result: dict) -> list[str]:
     names = {"today": f"pre-drawn samples ({result['baseline']})", "scenes": "scene shards"}
-    conv = {p: result["pipelines"][p]["conversion"] for p in names}
     lines = [
-        "| source | figure | " + " | ".join(names.values()) + " | ratio |",
+        "| source | figure | " + " | ".join(names.values()) + " | ratio of medians |",
         "| --- | --- | ---: | ---: | ---: |",
     ]
     for source in SOURCES:
+        runs = {p: result["conversion"][source][p] for p in names}
+        size = runs["scenes"][0]["size"]
         rows = (
-            ("training shard per scene", lambda c: c["train_bytes"] / c["train_scenes"] / 1e6, "{:.2f} MB"),
-            ("test shard per scene", lambda c: c["test_bytes"] / c["test_scenes"] / 1e6, "{:.3f} MB"),
-            ("conversion, 2 processes, per scene", lambda c: c["seconds"] / c["scenes"], "{:.2f} s"),
+            ("training shard per scene (MB)", lambda c: c["train_bytes"] / c["train_scenes"] / 1e6, "{:.2f}"),
+            ("test shard per scene (MB)", lambda c: c["test_bytes"] / c["test_scenes"] / 1e6, "{:.3f}"),
         )
-        for label, value, pattern in rows:
-            a, b = value(conv["today"][source]), value(conv["scenes"][source])
-            size = conv["scenes"][source]["size"]
+        for label, value, pattern in rows:  # the same bytes every repeat
+            a, b = value(runs["today"][0]), value(runs["scenes"][0])
             lines.append(f"| {source} ({size} px) | {label} | {pattern.format(a)} | {pattern.format(b)} | "
                          f"{b / a:.2f}× |")  # fmt: skip
+        seconds = {p: [c["seconds"] / c["scenes"] for c in runs[p]] for p in names}
+        ratio = statistics.median(seconds["scenes"]) / statistics.median(seconds["today"])
+        lines.append(
+            f"| {source} ({size} px) | conversion, 2 processes (s per scene) | "
+            f"{spread(seconds['today'], '{:.2f}')} | {spread(seconds['scenes'], '{:.2f}')} | {ratio:.2f}× |"
+        )
     for case in result["loader"]:
         rates = {p: [r["samples_per_second"] for r in case["runs"][p]] for p in names if p in case["runs"]}
-        cells = []
-        for p in names:
-            runs = rates.get(p)
-            cells.append("—" if not runs else f"{statistics.mean(runs):.0f} ({min(runs):.0f}–{max(runs):.0f})")
-        ratio = (f"{statistics.mean(rates['scenes']) / statistics.mean(rates['today']):.2f}×"
-                 if "today" in rates else "")  # fmt: skip
+        cells = [spread(rates[p], "{:.0f}") if p in rates else "—" for p in names]
+        ratio = ""
+        if "today" in rates:
+            ratio = f"{statistics.median(rates['scenes']) / statistics.median(rates['today']):.2f}×"
         lines.append(f"| {case['source']} ({case['size']} px) | loader samples/s, {case['label']} | "
                      f"{' | '.join(cells)} | {ratio} |")  # fmt: skip
-    need = result["settings"]["batch_size"] * 4
+    batch = result["settings"]["batch_size"]
     lines.append(
-        f"| | needed by one GPU at 4 steps/s × batch {result['settings']['batch_size']} | {need} | {need} | |"
+        f"| | loader samples/s needed by one GPU at 4 steps/s × batch {batch} | {4 * batch} | {4 * batch} | |"
     )
     return lines
 
@@ -205,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--re10k-size", type=int, default=256, help="image side of the RealEstate10K-layout shards")
     p.add_argument("--batch-size", type=int, default=10)
     p.add_argument("--workers", type=int, default=2, help="DataLoader workers")
-    p.add_argument("--batches", type=int, default=40, help="timed batches per loader run")
-    p.add_argument("--repeats", type=int, default=2, help="loader runs per case and pipeline, alternating")
+    p.add_argument("--batches", type=int, default=100, help="timed batches per loader run")
+    p.add_argument("--repeats", type=int, default=5, help="conversions and loader runs per case and pipeline")
     p.add_argument("--task", help=argparse.SUPPRESS)
     p.add_argument("--payload", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
@@ -233,14 +239,17 @@ def main(argv: list[str] | None = None) -> int:
             if k in ("size", "re10k_size", "batch_size", "workers", "batches", "repeats")
         },  # fmt: skip
         "load_start": load(),
-        "pipelines": {},
+        "conversion": {},
         "loader": [],
     }
-    for name, path in paths.items():
-        print(f"bench_data: converting with {name} ({path})", flush=True)
-        result["pipelines"][name] = in_subprocess(
-            path, "convert", {"name": name, "work": str(work), "size": a.size, "re10k_size": a.re10k_size}
-        )
+    for source in SOURCES:
+        result["conversion"][source] = {name: [] for name in paths}
+        for _ in range(a.repeats):
+            for name, path in paths.items():
+                print(f"bench_data: converting {source} with {name} ({path})", flush=True)
+                payload = {"name": name, "work": str(work), "size": a.size, "re10k_size": a.re10k_size,
+                           "source": source}  # fmt: skip
+                result["conversion"][source][name].append(in_subprocess(path, "convert", payload))
     cases = []
     for source, (_, (lo, hi)) in SOURCES.items():
         cases.append((source, "first curriculum phase", (lo, lo), 1, ("today", "scenes")))
@@ -270,8 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     header = [
         f"Measured {result['date'][:10]} at commit {result['commit']} against {a.baseline} on {m['cores']} "
         f"cores ({m['cpu']}), load average {result['load_start']} at the start and {result['load_end']} at the "
-        "end; "
-        f"`{result['command'].strip()}`. Loader: mean over {a.repeats} runs (lowest–highest), "
+        f"end; `{result['command'].strip()}`. Median (lowest–highest) of {a.repeats} runs; loader: "
         f"{a.workers} workers, batch {a.batch_size}, {a.batches} timed batches.",
         "",
     ]
