@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """What drawing fresh views at every step buys over a fixed pool of pre-drawn examples, at the demo's size.
 
-    python benchmarks/learning_effect.py [--seeds 0 1 2] [--pool 6] [--steps 600] [--every 300]
+    python benchmarks/learning_effect.py [--seeds 0 1 … 7] [--pool 6] [--steps 600] [--every 300]
         [--data outputs/learning_effect/data] [--out outputs/learning_effect] [--results docs/results/data]
 
 Two arms of ``benchmarks/learning_curves.py`` on the demo's data (synthetic.py with 12 validation scenes,
@@ -64,7 +64,7 @@ def git(*args: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="data seeds (default 0 1 2)")
+    p.add_argument("--seeds", type=int, nargs="+", default=list(range(8)), help="data seeds (default 0..7)")
     p.add_argument("--pool", type=int, default=6, help="examples per scene of the fixed pool (default 6)")
     p.add_argument(
         "--steps", type=int, default=600, help="training steps of every run (default 600, the demo's)"
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     (a.results / "learning_effect.json").write_text(json.dumps(result, indent=1) + "\n")
 
     def cell(s: dict, pattern: str) -> str:
-        return f"{pattern.format(s['mean'])} ± {pattern.format(s['half_width_95'])}"
+        return f"{pattern.format(s['mean'])} ± {abs(s['half_width_95']):.2f}"
 
     val_scenes = per_seed[0]["fresh"]["val_num_scenes"]
     lines = [
