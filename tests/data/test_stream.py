@@ -216,6 +216,7 @@ def test_k_context_views_in_batches(synthetic_shards, count):
 def test_a_range_of_counts_draws_one_count_per_batch_from_seed_and_step(synthetic_shards):
     dm = module(synthetic_shards, num_context_views=(2, 5), gap_initial=(2, 11), gap_final=(2, 11),
                 train_batches_per_epoch=24, num_workers=2)  # fmt: skip
+    assert dm.num_context_views == (2, 5)  # as given, for the model to check its appearance head against
     counts = [b.context.num_views for b in dm.train_dataloader()]
     assert counts == [dm.context_views.at(dm.seed, step) for step in range(24)] and set(counts) == {2, 3, 4, 5}
 

@@ -115,6 +115,7 @@ class DataModule(L.LightningDataModule):
         if fixed_pool and not self.context_views.fixed:
             raise UserError("data.fixed_pool draws its examples once, with one count of context views: give "
                             "data.num_context_views a number, not a range")  # fmt: skip
+        self.num_context_views = num_context_views  # as given: what the model checks its head against
         self.root = Path(root)
         self.image_size = image_size
         self.batch_size = batch_size
