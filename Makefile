@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	# torch/torchvision pinned to the releases on this machine's disk; pip (not uv) finds them there.
 	$(PIP) install --quiet "torch==2.14.1" "torchvision==0.29.1"
-	$(PIP) install --quiet -e ".[dev]"
+	$(PIP) install --quiet -e ".[dev,viewer]"
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -105,13 +105,16 @@ DEMO_FIT_ARGS ?=  # extra `aesplat fit` overrides, e.g. DEMO_FIT_ARGS="--trainer
 # learning the cameras costs. Its checkpoint is tested without the flag: `aesplat test --ckpt_path` reads
 # model.cameras from it.
 DEMO_DIAGNOSE ?= 1
+# DEMO_RESULTS=docs/results/demo also writes the report's figures (demo.json, headline.md, render_grid.png)
+# where the documentation pages read them (docs/testing.md, "Figures: one source for each").
+DEMO_RESULTS ?=
 AESPLAT := $(VENV)/bin/aesplat
 # The pipeline is scripts/demo.sh (it runs the diagnostic beside the method's own training); these settings reach
 # it through the environment.
 demo: $(STAMP)
 	PY=$(PY) AESPLAT=$(AESPLAT) DEMO_CONFIG=$(DEMO_CONFIG) DEMO_DIR=$(DEMO_DIR) DEMO_SIZE=$(DEMO_SIZE) \
 		DEMO_SCENE_ARGS="$(DEMO_SCENE_ARGS)" DEMO_FIT_ARGS="$(DEMO_FIT_ARGS)" DEMO_DIAGNOSE=$(DEMO_DIAGNOSE) \
-		DEMO_VAL_SCENES=$(DEMO_VAL_SCENES) \
+		DEMO_VAL_SCENES=$(DEMO_VAL_SCENES) DEMO_RESULTS=$(DEMO_RESULTS) \
 		bash scripts/demo.sh
 
 # `make bench [CKPT=...] [BENCH_OUT=...]`: accuracy versus time of a trained checkpoint (default: the demo's).

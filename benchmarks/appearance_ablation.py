@@ -16,7 +16,8 @@
    and non-highlight pixels and SSIM, and the paired per-seed difference to ``full`` with its interval; and
    what the view-dependent part learned: the energy of the predicted higher-order SH coefficients on the test
    scenes, measured once per finished run from its checkpoint and kept in RUN/sh_energy.json), and
-   ``ablation.png`` (one panel per set and camera source).
+   ``ablation.png`` (one panel per set and camera source), and ``headline.md``, the results page's two
+   headline tables (PSNR and its difference to ``full`` per set and camera source).
 4. The primary comparisons, fixed here for every run of the grid (``PRIMARY``): every row against ``full``,
    posed, on PSNR over the highlight pixels of the specular set and on overall PSNR of the diffuse set. For
    that family of ten, ``primary.csv`` and the table give the paired t-test's p-value per comparison and its
@@ -318,22 +319,29 @@ def markdown(lines: list[dict], runs: list[Run], results: dict[Run, dict], setti
         "pixels whose specular term exceeds 0.05 and on the others (the diffuse set has no highlight pixels).",
         *primary_markdown(primary_family(results, runs, list(dict.fromkeys(r.row for r in runs)))),
     ]
+    digits = {m: 4 if m == "ssim" else 2 for m in METRICS}
     for dataset, cameras in groups(runs):
-        out += ["", f"## {group_title(dataset, cameras)}", ""]
-        head = ["row", "n", *(LABELS[m] for m in METRICS), *(f"Δ {LABELS[m]}" for m in METRICS)]
-        out += ["| " + " | ".join(head) + " |", "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |"]
-        for line in lines:
-            if (line["set"], line["cameras"]) != (dataset, cameras):
-                continue
-            digits = {m: 4 if m == "ssim" else 2 for m in METRICS}
-            cells = [f"`{line['row']}`", str(line["n"])]
-            cells += [_fmt(line[m], line[f"{m}_ci"], digits[m]) for m in METRICS]
-            cells += [
-                "(reference)" if line["row"] == "full" else
-                _fmt(line[f"{m}_vs_full"], line[f"{m}_vs_full_ci"], digits[m], signed=True)
-                for m in METRICS
-            ]  # fmt: skip
+        mine = [line for line in lines if (line["set"], line["cameras"]) == (dataset, cameras)]
+        # Two narrow tables, the values and their differences to `full`: one wide one would hide its last
+        # columns on the documentation site.
+        head = ["row", "n", *(LABELS[m] for m in METRICS)]
+        out += ["", f"## {group_title(dataset, cameras)}", "", "| " + " | ".join(head) + " |",
+                "| " + " | ".join(["---"] + ["---:"] * (len(head) - 1)) + " |"]  # fmt: skip
+        for line in mine:
+            cells = [
+                f"`{line['row']}`",
+                str(line["n"]),
+                *(_fmt(line[m], line[f"{m}_ci"], digits[m]) for m in METRICS),
+            ]
             out.append("| " + " | ".join(cells) + " |")
+        out += ["", "| row | " + " | ".join(f"Δ {LABELS[m]}" for m in METRICS) + " |",
+                "| --- |" + " ---: |" * len(METRICS)]  # fmt: skip
+        for line in mine:
+            if line["row"] != "full":
+                cells = [
+                    _fmt(line[f"{m}_vs_full"], line[f"{m}_vs_full_ci"], digits[m], signed=True) for m in METRICS
+                ]
+                out.append(f"| `{line['row']}` | " + " | ".join(cells) + " |")
     rows = list(dict.fromkeys(line["row"] for line in lines))
     out += ["", "## What the view-dependent part learned", "",
             "Mean over the test scenes' Gaussians of the squared SH coefficients of degree ≥ 1 (summed over "
@@ -349,6 +357,44 @@ def markdown(lines: list[dict], runs: list[Run], results: dict[Run, dict], setti
         kind = "posed" if cameras == "dataset" else "pose-free"
         out.append(f"| {dataset}, {kind} | " + " | ".join(cells) + " |")
     out += ["", "Cells: energy of degree ≥ 1 (its ratio to the DC energy)."]
+    return "\n".join(out) + "\n"
+
+
+def _cell(line: dict, metric: str, difference: bool) -> str:
+    """A table cell; a difference to `full` whose 95 % interval excludes 0 is bold."""
+    key = f"{metric}_vs_full" if difference else metric
+    mean, half = line.get(key), line.get(f"{key}_ci")
+    if difference and line["row"] == "full":
+        return ""
+    text = _fmt(mean, half, 2, signed=difference)
+    excludes_zero = difference and half is not None and math.isfinite(half) and abs(mean) > half
+    return f"**{text}**" if excludes_zero else text
+
+
+def headline_markdown(lines: list[dict]) -> str:
+    """The results page's headline (headline.md): PSNR and its difference to `full` for the posed specular set
+    (all pixels and the highlight pixels), the posed diffuse set and the pose-free specular set."""
+    by = {(x["set"], x["cameras"], x["row"]): x for x in lines}
+    rows = list(dict.fromkeys(x["row"] for x in lines))
+    out = ["| row | specular: PSNR | Δ | highlight PSNR | Δ |", "| --- | ---: | ---: | ---: | ---: |"]
+    for row in rows:
+        x = by.get(("specular", "dataset", row))
+        if x is not None:
+            cells = [_cell(x, "psnr", False), _cell(x, "psnr", True), _cell(x, "psnr_highlight", False),
+                     _cell(x, "psnr_highlight", True)]  # fmt: skip
+            out.append(f"| `{row}` | " + " | ".join(cells) + " |")
+    out += [
+        "",
+        "| row | diffuse: PSNR | Δ | pose-free specular: PSNR | Δ |",
+        "| --- | ---: | ---: | ---: | ---: |",
+    ]
+    for row in rows:
+        d, f = by.get(("diffuse", "dataset", row)), by.get(("specular", "predicted", row))
+        cells = [_cell(d, "psnr", False), _cell(d, "psnr", True)] if d else ["", ""]
+        cells += [_cell(f, "psnr", False), _cell(f, "psnr", True)] if f else ["", ""]
+        out.append(f"| `{row}` | " + " | ".join(cells) + " |")
+    out += ["", "Test PSNR (dB), mean ± half-width of the 95 % t-interval over seeds; Δ: the row minus `full`, "
+            "paired by seed; bold: a Δ whose interval excludes 0 (unadjusted)."]  # fmt: skip
     return "\n".join(out) + "\n"
 
 
@@ -415,6 +461,7 @@ def write_report(
         writer.writerows([{k: ("" if isinstance(v, float) and math.isnan(v) else v) for k, v in x.items()}
                           for x in family])  # fmt: skip
     (out / "table.md").write_text(markdown(lines, runs, results, settings))
+    (out / "headline.md").write_text(headline_markdown(lines))
     plot(lines, runs, out / "ablation.png")
 
 
@@ -461,7 +508,10 @@ def main(argv: list[str] | None = None) -> None:
     if a.from_runs is not None:
         recorded = results_from_csv(Path(a.from_runs))
         write_report(out, runs, {run: recorded[run] for run in runs if run in recorded}, a.rows, settings)
-        print(f"wrote {out / 'table.md'}, table.csv, primary.csv, runs.csv and ablation.png from {a.from_runs}")
+        print(
+            f"wrote {out / 'table.md'}, headline.md, table.csv, primary.csv, runs.csv and ablation.png from "
+            f"{a.from_runs}"
+        )
         return
     results = {run: r for run in runs if (r := result(run, work, settings)) is not None}
     if not a.report_only:

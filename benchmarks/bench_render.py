@@ -1,14 +1,18 @@
 """Rasterizer benchmark: reference workload, scaling table, effects-on-demand savings, accuracy vs time.
 
     .venv/bin/python benchmarks/bench_render.py [--quick] [--repeats N] [--compile] [--backend torch]
+        [--json docs/results/rasterizer/reference.json]
 
 Prints markdown tables and writes ``docs/results/render_tradeoffs.png``. Uses 2 CPU threads. Timings are
-medians over repeats; on a shared machine they are noisy, so compare rows from the same run.
+medians over repeats; on a shared machine they are noisy, so compare rows from the same run. ``--json`` also
+writes the reference workload's figures with the date, commit, machine and load (the file the documentation
+quotes them from).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import resource
@@ -26,6 +30,9 @@ import torch.nn.functional as F  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_render_scene import reference_workload  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+from figures import provenance, write_whole  # noqa: E402
 
 from aesplat.render import render, render_with_stats  # noqa: E402
 from aesplat.types import Gaussians  # noqa: E402
@@ -71,7 +78,8 @@ def _fmt_psnr(p: float) -> str:
     return "exact" if math.isinf(p) else ("float round-off" if p > 100 else f"{p:.1f}")
 
 
-def reference_section(repeats: int, compile_too: bool, options: dict) -> None:
+def reference_section(repeats: int, compile_too: bool, options: dict) -> dict:
+    """Print the reference workload's table; return its figures (milliseconds, GiB) for ``--json``."""
     g, ext, intr = reference_workload(SIZE)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
     fwd = _median_time(_forward(g, ext, intr, SIZE, **options), repeats)
@@ -94,6 +102,13 @@ def reference_section(repeats: int, compile_too: bool, options: dict) -> None:
         print(f"| forward + backward, `compile=True` (median of {repeats}) | {cfb * 1e3:.0f} ms | <= 800 ms |")
     print(f"| peak process memory (RSS; {rss0:.2f} GiB before the runs) | {rss:.2f} GiB | <= 2 GiB |")
     print(f"| visible / intersections | {stats.visible:,} / {stats.intersections:,} | |\n")
+    figures = {"workload": {"gaussians": g.num_gaussians, "views": 2, "context_size": SIZE, "target_size": SIZE,
+                            "sh_degree": 4}, "repeats": repeats, "forward_ms": fwd * 1e3,
+               "forward_backward_ms": fb * 1e3, "peak_rss_gib": rss, "rss_before_gib": rss0,
+               "visible": stats.visible, "intersections": stats.intersections}  # fmt: skip
+    if compile_too:
+        figures |= {"compiled_forward_ms": cfwd * 1e3, "compiled_forward_backward_ms": cfb * 1e3}
+    return figures
 
 
 def scaling_section(repeats: int, quick: bool, options: dict) -> None:
@@ -237,7 +252,10 @@ def main() -> None:
         type=Path,
         default=Path(__file__).resolve().parents[1] / "docs" / "results" / "render_tradeoffs.png",
     )
+    parser.add_argument("--json", type=Path, default=None, help="also write the reference workload's "
+                        "figures, date, commit, machine and load to this file")  # fmt: skip
     args = parser.parse_args()
+    load_start = list(os.getloadavg())
     torch.set_num_threads(args.threads)
     repeats = args.repeats or (1 if args.quick else 5)
     options = {"backend": args.backend}
@@ -250,7 +268,13 @@ def main() -> None:
           "The machine is shared: timings are noisy.\n")  # fmt: skip
     sections = args.sections.split(",")
     if "reference" in sections:
-        reference_section(repeats, args.compile, options)
+        reference = reference_section(repeats, args.compile, options)
+        if args.json is not None:
+            command = "python benchmarks/bench_render.py " + " ".join(sys.argv[1:])
+            record = {"command": command.strip(), **provenance([round(v, 2) for v in load_start]),
+                      "backend": args.backend, "threads": torch.get_num_threads(), **reference}  # fmt: skip
+            write_whole(args.json, (json.dumps(record, indent=1) + "\n").encode())
+            print(f"Reference workload figures: `{args.json}`\n")
     if "effects" in sections:
         effects_section(repeats, options)
     if "scaling" in sections:

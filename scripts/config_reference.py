@@ -181,34 +181,43 @@ def _cell(text: str) -> str:
     return text.replace("|", "\\|").replace("\n", " ")
 
 
-# The complete configs, one column each; overlays (layered on one of them with a second -c) are listed apart.
-MAIN_CONFIGS = ("smoke", "demo", "demo_from_scratch", "warmstart", "appearance_ablation", "re10k", "acid")
+# The complete configs, in tables of a few columns each (a wide table hides its last columns), the paper's
+# first; overlays (layered on one of them with a second -c) are listed apart.
+CONFIG_GROUPS = (
+    ("The paper's settings (GPU)", ("re10k", "acid")),
+    ("The CPU demo and its warm start", ("demo", "demo_from_scratch", "warmstart")),
+    ("The tests and the appearance ablation (CPU)", ("smoke", "appearance_ablation")),
+)
+MAIN_CONFIGS = tuple(name for _, names in CONFIG_GROUPS for name in names)
 
 
 def _shipped_markdown(defaults: dict[str, str]) -> list[str]:
     shipped = shipped_values()
-    columns = [c for c in MAIN_CONFIGS if (REPO / "conf" / f"{c}.yaml").exists()]
     out = [
         "### What the shipped configs set",
         "",
         "Every key a file in `conf/` sets, with its value where it differs from the default above (blank: the"
         " default, or not set). `trainer`, `checkpoint` and `last_checkpoint` keys are Lightning's.",
         "",
-        "| key | default | " + " | ".join(f"`{c}`" for c in columns) + " |",
-        "| --- | --- | " + " | ".join("---" for _ in columns) + " |",
     ]
-    for key in sorted(shipped):
-        default = defaults.get(key, "")
-        cells = []
-        for c in columns:
-            value = shipped[key].get(f"{c}.yaml", None)
-            shown = "" if value is None and f"{c}.yaml" not in shipped[key] else _default(value)
-            cells.append(f"`{_cell(shown)}`" if shown and shown != default else "")
-        if any(cells):
-            shown_default = f"`{_cell(default)}`" if default else "(Lightning's)"
-            out.append(f"| `{key}` | {shown_default} | " + " | ".join(cells) + " |")
-    out += ["", "Overlays, each layered on a complete config with a second `-c`:", ""]
-    overlays = sorted({name for per in shipped.values() for name in per} - {f"{c}.yaml" for c in columns})
+    for title, group in CONFIG_GROUPS:
+        columns = [c for c in group if (REPO / "conf" / f"{c}.yaml").exists()]
+        rows = []
+        for key in sorted(shipped):
+            default = defaults.get(key, "")
+            cells = []
+            for c in columns:
+                value = shipped[key].get(f"{c}.yaml", None)
+                shown = "" if value is None and f"{c}.yaml" not in shipped[key] else _default(value)
+                cells.append(f"`{_cell(shown)}`" if shown and shown != default else "")
+            if any(cells):
+                shown_default = f"`{_cell(default)}`" if default else "(Lightning's)"
+                rows.append(f"| `{key}` | " + " | ".join(cells) + f" | {shown_default} |")
+        out += [f"#### {title}", "", "| key | " + " | ".join(f"`{c}`" for c in columns) + " | default |",
+                "| --- | " + " | ".join("---" for _ in columns) + " | --- |", *rows, ""]  # fmt: skip
+    out += ["Overlays, each layered on a complete config with a second `-c`:", ""]
+    main = {f"{c}.yaml" for c in MAIN_CONFIGS}
+    overlays = sorted({name for per in shipped.values() for name in per} - main)
     for name in overlays:
         sets = ", ".join(f"`{k}: {_cell(_default(v[name]))}`" for k, v in sorted(shipped.items()) if name in v)
         out.append(f"- `conf/{name}`: {sets}")

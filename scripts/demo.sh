@@ -42,6 +42,7 @@ diagnostic() {
         --trainer.default_root_dir "$posed/run" --trainer.logger false --ckpt_path "$posed/run/checkpoints/last.ckpt"
 }
 
+load_start=$(cut -d' ' -f1-3 /proc/loadavg 2>/dev/null || true)  # the machine's load, for demo.json
 rm -rf "$run" "$DEMO_DIR/initial" "$DEMO_DIR/random" "$DEMO_DIR/bench" "$posed"
 mkdir -p "$DEMO_DIR"
 echo "stage,seconds" >"$times"
@@ -79,6 +80,9 @@ stage "aesplat test (trained)" "$AESPLAT" test "${args[@]}" --trainer.default_ro
 report=(--run-dir "$run" --initial "$DEMO_DIR/initial/test-latest" --bench "$DEMO_DIR/bench" --timings "$times"
     --out "$DEMO_DIR")
 [[ -n $weights ]] && report+=(--random-init "$DEMO_DIR/random/test-latest")
+[[ -n $load_start ]] && report+=(--load-start "$load_start")
+# DEMO_RESULTS=docs/results/demo: the report also writes the files the documentation quotes its figures from.
+[[ -n ${DEMO_RESULTS:-} ]] && report+=(--results "$DEMO_RESULTS")
 if [[ -n $diag_pid ]]; then
     echo "demo: waiting for the diagnostic (log: $posed/log.txt)"
     if ! wait "$diag_pid"; then

@@ -149,3 +149,15 @@ def test_primary_family_holm_adjusts_the_named_comparisons_only(tmp_path):
         rows = list(csv.DictReader(f))
     assert [float(r["p_holm"]) for r in rows] == pytest.approx([x["p_holm"] for x in family])
     assert "## Primary comparisons (Holm-adjusted)" in (rebuilt / "table.md").read_text()
+
+
+def test_the_headline_tables_mark_the_differences_whose_interval_excludes_zero():
+    runner = _runner()
+    line = {"set": "specular", "cameras": "dataset", "psnr": 20.0, "psnr_ci": 0.3, "psnr_highlight": 21.0,
+            "psnr_highlight_ci": 1.0}  # fmt: skip
+    lines = [{**line, "row": "full"},
+             {**line, "row": "baseline", "psnr_vs_full": -3.9, "psnr_vs_full_ci": 0.2,
+              "psnr_highlight_vs_full": 0.5, "psnr_highlight_vs_full_ci": 1.0}]  # fmt: skip
+    text = runner.headline_markdown(lines)
+    assert "| `full` | 20.00 ± 0.30 |  | 21.00 ± 1.00 |  |" in text
+    assert "| `baseline` | 20.00 ± 0.30 | **-3.90 ± 0.20** | 21.00 ± 1.00 | +0.50 ± 1.00 |" in text

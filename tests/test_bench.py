@@ -14,6 +14,7 @@ from aesplat.bench import (
     Point,
     Row,
     Setting,
+    context_subset,
     default_sweep,
     main,
     markdown_tables,
@@ -60,12 +61,18 @@ def test_default_sweep_varies_one_knob_at_a_time_from_the_baseline():
     baseline, points = default_sweep(4, 224, backends=("torch",), tile_sizes=(8, 16), compiled=True)
     assert baseline == Setting(backend="torch")
     knobs = list(dict.fromkeys(p.knob for p in points))
-    assert knobs == ["sh_degree", "input_size", "render_size", "keep_fraction", "min_opacity", "precision",
-                     "backend", "tile_size"]  # fmt: skip
-    for knob in knobs[
-        :-1
-    ]:  # every series but the tile sizes (16 is not the baseline's None) holds the baseline
+    assert knobs == ["sh_degree", "context_views", "input_size", "render_size", "keep_fraction", "min_opacity",
+                     "precision", "backend", "tile_size"]  # fmt: skip
+    # Every series but the tile sizes (16 is not the baseline's None) and the context views (the baseline
+    # feeds every view a sample holds, whatever their number) holds the baseline.
+    for knob in (k for k in knobs if k not in ("tile_size", "context_views")):
         assert sum(p.setting == baseline for p in points if p.knob == knob) == 1, knob
+    assert [p.label for p in points if p.knob == "context_views"] == [
+        "2 views",
+        "3 views",
+        "4 views",
+        "6 views",
+    ]
     for p in points:  # each point differs from the baseline in its own knob only
         changed = {k for k in vars(baseline) if getattr(p.setting, k) != getattr(baseline, k)}
         assert changed <= {p.knob, "render_options"}, (p, changed)
@@ -77,8 +84,11 @@ def test_default_sweep_varies_one_knob_at_a_time_from_the_baseline():
 
 
 def test_model_input_sizes_are_multiples_of_the_patch():
-    sizes = model_input_sizes(224, [0.5, 0.75, 1.0, 0.1])
+    sizes = model_input_sizes(224, [0.5, 0.75, 1.0, 0.1], patch=14)
     assert sizes == [28, 112, 168, 224] and all(s % 14 == 0 for s in sizes)
+    assert model_input_sizes(21, [0.5, 1.0], patch=7) == [14, 21]  # a model built with 7-pixel patches
+    _, points = default_sweep(2, 35, patch=7, knobs=["input_size"], input_scales=(0.4, 0.6, 1.0))
+    assert [p.setting.input_size for p in points] == [14, 21, None]
 
 
 def test_resize_views_keeps_normalised_intrinsics():
@@ -146,10 +156,52 @@ def test_input_size_and_precision_run_their_own_forward(model, scenes):
     bench = Bench(model, scenes[:1], torch.device("cpu"), repeats=1, warmup=0, progress=False)
     rows = bench.run(points, base, warmup_runs=1)
     assert len(bench._forwards) == 3
-    small = bench._forwards[(14, "fp32")][0]
+    small = bench._forwards[(None, 14, "fp32")][0]
     assert small.gaussians.num_gaussians == 2 * 14 * 14  # one Gaussian per input pixel
     assert all(not r.skipped for r in rows), [r.skipped for r in rows]
     assert rows[0].gaussians == 2 * 14 * 14 and rows[2].gaussians == 2 * SIZE * SIZE
+
+
+def test_context_subset_spreads_the_views_and_keeps_the_reference_first():
+    assert context_subset(torch.tensor([0, 10]), 2) == [0, 1]
+    frames = torch.tensor([0, 50, 10, 20, 30, 40])  # outer pair first, then the views between
+    assert context_subset(frames, 2) == [0, 1]
+    assert context_subset(frames, 3) == [0, 1, 3]  # frames 0, 50 and 20: ranks 0, 2 (2.5 rounded), 5
+    assert context_subset(frames, 4) == [0, 1, 3, 4]  # frames 0, 50, 20 and 30: ranks 0, 2, 3, 5
+    assert context_subset(frames, 6) == [0, 1, 2, 3, 4, 5]
+    assert context_subset(torch.tensor([30, 0, 60]), 2) == [0, 2]  # view 0 in the middle: still the first
+    with pytest.raises(ValueError, match="hold 2 context views, not 3"):
+        context_subset(torch.tensor([0, 10]), 3)
+
+
+def test_the_context_views_knob_feeds_each_count_and_renders_the_same_targets():
+    torch.manual_seed(0)
+    pool = build_model(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0, view_aggregation="pool").eval()
+    torch.manual_seed(2)
+    gen = torch.Generator().manual_seed(3)
+    context = replace(views(4), index=torch.tensor([[0, 30, 10, 20]]),
+                      images=torch.rand(1, 4, 3, SIZE, SIZE, generator=gen))  # fmt: skip
+    scene = BatchedExample(context=context, target=views(2), scene=["s"])
+    baseline, points = default_sweep(SH_DEGREE, SIZE, knobs=["context_views"])
+    bench = Bench(pool, [scene], torch.device("cpu"), repeats=1, warmup=0, progress=False)
+    rows = {r.label: r for r in bench.run(points, baseline, warmup_runs=0)}
+    assert "hold 4 context views, not 6" in rows["6 views"].skipped
+    for count in (2, 3, 4):
+        row = rows[f"{count} views"]
+        assert not row.skipped and row.gaussians == count * SIZE * SIZE
+        keep = context_subset(context.index[0], count)
+        with torch.no_grad():  # the same targets, rendered from the Gaussians of `count` context views
+            out = pool(context.images[:, keep], scene.target.images)
+            img = render(out.gaussians, out.extrinsics[:, count:], out.intrinsics[:, count:], SIZE, SIZE).color
+        assert row.psnr == pytest.approx(psnr(img[0], scene.target.images[0]).mean().item(), abs=1e-4)
+        assert math.isfinite(row.rot_err_deg)
+    assert len({rows[f"{c} views"].psnr for c in (2, 3, 4)}) == 3
+    # The paper's head takes its own count only: the others are reported, not fatal.
+    concat = Bench(build_model(size="tiny", sh_degree=SH_DEGREE), [scene], torch.device("cpu"), repeats=1,
+                   warmup=0, progress=False)  # fmt: skip
+    concat_rows = {r.label: r for r in concat.run(points, points[0].setting, warmup_runs=1)}  # warm at 2
+    assert not concat_rows["2 views"].skipped
+    assert "view_aggregation: pool" in concat_rows["3 views"].skipped
 
 
 def test_a_failing_setting_is_reported_not_fatal(model, scenes):
@@ -181,7 +233,7 @@ def test_write_report_files(tmp_path):
     assert len(table) == 5 and table[0]["knob"] == "sh_degree" and float(table[1]["psnr"]) == 21.0
     md = paths["BENCH.md"].read_text()
     assert "## SH degree at render" in md and "## model precision" in md
-    assert "| SH 0 | 20.00 | -2.00 | 0.5000 | 10.0 | 5.0 | 15.0 | 1.13× | 100 |" in md
+    assert "| SH 0 | 20.00 | -2.00 | 0.5000 | – | 10.0 | 5.0 | 15.0 | 1.13× | 100 |" in md
     assert "| **SH 2** |" in md and "no bf16 here" in md
     assert Image.open(paths["accuracy_vs_time.png"]).size[0] > 500
     saved = json.loads(paths["bench.json"].read_text())

@@ -1,6 +1,7 @@
 """scripts/demo_report.py: the posed diagnostic section (`model.cameras: dataset`) of the demo report."""
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -118,3 +119,66 @@ def test_the_selection_section_shows_validation_beside_test_or_warns_without_a_v
 def test_the_report_counts_the_validation_scenes_a_pass_scored(trainer, eval_batch, scored):
     config = {"trainer": trainer, "data": {"eval_batch_size": eval_batch}}
     assert _report_module().validated_scenes(12, config) == scored
+
+
+def _results(report, tmp_path) -> dict:
+    random_init = _summary(tmp_path / "r", 16.99, 8.78, 119.6)
+    warm, trained = _summary(tmp_path / "w", 19.50, 2.98, 6.2), _summary(tmp_path / "t", 20.05, 3.31, 7.7)
+    baselines = {report.COPY_MEAN: 17.36, report.COPY_BEST: 16.88}
+    return {"command": "make demo", "date": "2026-11-26T07:40:12+00:00", "commit": "abc1234", "modified": False,
+            "machine": {"cpu": "AMD EPYC 7B13", "cores": 2, "torch": "2.14.1"},
+            "load": {"start": [1.2, 0.9, 0.5], "end": [2.0, 1.46, 0.8]},
+            "config": {"steps": 600, "weights": "w.pt", "cameras": "predicted"},
+            "test": {"scenes": 3, "random": random_init, "start": warm, "trained": trained},
+            "goals": report.goals(trained, random_init, baselines)}  # fmt: skip
+
+
+def test_the_goals_say_what_was_measured_and_whether_it_was_met(tmp_path):
+    report = _report_module()
+    goals = _results(report, tmp_path)["goals"]
+    assert goals["db_over_mean_copy"]["value"] == pytest.approx(20.05 - 17.36)
+    assert goals["db_over_mean_copy"]["met"] and goals["rotation_ratio"]["met"]
+    assert goals["rotation_ratio"]["value"] == pytest.approx(3.31 / 8.78)
+    missed = report.goals(_summary(tmp_path / "m", 18.0, 5.0, 7.0), _summary(tmp_path / "n", 17.0, 8.0, 9.0),
+                          {report.COPY_MEAN: 17.36})  # fmt: skip
+    assert not missed["db_over_mean_copy"]["met"] and not missed["rotation_ratio"]["met"]
+    assert report.goals(_summary(tmp_path / "u", 18.0, None, None), None, {}) == {}  # nothing to measure
+
+
+def test_the_headline_table_and_its_provenance_line(tmp_path):
+    report = _report_module()
+    lines = report.headline_table(_results(report, tmp_path))
+    assert lines[0] == "| metric | random initialisation | warm start (step 0) | trained, 600 pose-free steps |"
+    assert "| PSNR (dB) ↑ | 16.99 | 19.50 | **20.05** |" in lines
+    assert "| rotation error (°) ↓ | 8.78 | 2.98 | **3.31** |" in lines
+    assert lines[-1] == (
+        "3 test scenes. `make demo` on 2026-11-26 07:40 UTC, commit abc1234; AMD EPYC 7B13, 2 cores, "
+        "torch 2.14.1; 5-minute load average 0.9 → 1.5 (start → end of the run)."
+    )
+
+
+def test_the_results_folder_gets_whole_files_only(tmp_path, monkeypatch):
+    report = _report_module()
+    results = _results(report, tmp_path)
+    grid = tmp_path / "render_grid.png"
+    grid.write_bytes(b"png")
+    report.write_results(results, tmp_path / "docs", grid)
+    assert json.loads((tmp_path / "docs" / "demo.json").read_text()) == results
+    assert (tmp_path / "docs" / "render_grid.png").read_bytes() == b"png"
+    assert (tmp_path / "docs" / "headline.md").read_text().startswith("| metric |")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "docs" / "demo.json").stat().st_mode & 0o777 == 0o666 & ~umask  # as any new file
+
+    def full_disk(*args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(report.os, "fsync", full_disk)
+    with pytest.raises(OSError):
+        report.write_results({**results, "commit": "def5678"}, tmp_path / "docs")
+    assert json.loads((tmp_path / "docs" / "demo.json").read_text())["commit"] == "abc1234"  # the old file
+    assert sorted(p.name for p in (tmp_path / "docs").iterdir()) == [
+        "demo.json",
+        "headline.md",
+        "render_grid.png",
+    ]

@@ -11,6 +11,7 @@ import torch
 import yaml
 from PIL import Image
 
+from aesplat.errors import UserError
 from aesplat.geometry import make_pose, matrix_to_quat, quat_to_matrix
 from aesplat.predict import (
     colorize_depth,
@@ -18,6 +19,7 @@ from aesplat.predict import (
     load_checkpoint,
     load_image,
     main,
+    model_image_shape,
     slerp,
 )
 
@@ -28,16 +30,16 @@ SH_DEGREE = 2
 
 
 def write_tiny_checkpoint(
-    run_dir: Path, data_root: str = "unused", image_size: int = IMAGE_SIZE, cameras: str = "predicted"
+    run_dir: Path, data_root: str = "unused", image_size: int = IMAGE_SIZE, cameras: str = "predicted", **net
 ) -> Path:
     """A random-init tiny model saved by a real Lightning Trainer, plus the run's config.yaml (as `aesplat fit`
-    lays them out: RUN/checkpoints/last.ckpt, RUN/config.yaml)."""
+    lays them out: RUN/checkpoints/last.ckpt, RUN/config.yaml). ``net``: more ``model.net`` settings."""
     from lightning.pytorch import Trainer
 
     from aesplat.train import AESplatModule, EvalConfig, LossConfig, NetConfig
 
     module = AESplatModule(
-        net=NetConfig(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0),
+        net=NetConfig(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0, **net),
         loss=LossConfig(lpips_weight=0.0),
         eval=EvalConfig(metrics_lpips=False),
         cameras=cameras,
@@ -67,14 +69,35 @@ def save_png(path: Path, array: np.ndarray) -> Path:
 # ----------------------------------------------------------------------------------------------- images
 
 
-def test_load_image_resizes_the_short_side_and_crops_the_centre(tmp_path):
-    # 30 x 90: left, middle and right thirds red, green, blue -> the centre crop is all green.
-    img = np.zeros((30, 90, 3), np.uint8)
-    img[:, :30, 0] = img[:, 30:60, 1] = img[:, 60:, 2] = 255
-    out = load_image(save_png(tmp_path / "wide.png", img), 14)
-    assert out.shape == (3, 14, 14) and out.dtype == torch.float32
-    centre = out[:, :, 2:-2]
+def _thirds(height: int, width: int) -> np.ndarray:
+    """Left, middle and right thirds red, green, blue."""
+    img = np.zeros((height, width, 3), np.uint8)
+    third = width // 3
+    img[:, :third, 0] = img[:, third : 2 * third, 1] = img[:, 2 * third :, 2] = 255
+    return img
+
+
+def test_load_image_keeps_the_aspect_ratio_with_the_short_side_at_size(tmp_path):
+    out = load_image(save_png(tmp_path / "wide.png", _thirds(30, 90)), 14)
+    assert out.image.shape == (3, 14, 42) and out.image.dtype == torch.float32  # 3:1, a 1 x 3 token grid
+    assert out.source == (90, 30) and out.crop == (0.0, 0.0, 90.0, 30.0) and not out.cropped
+    for third, channel in enumerate((0, 1, 2)):  # the whole photo: all three colours, in place
+        assert out.image[channel, :, 14 * third + 2 : 14 * third + 12].min() > 0.95
+    # 16:9 with 14-pixel patches at 28: 49.8 px rounds to 56 (4 patches); the 1-pixel sliver is cropped
+    assert load_image(save_png(tmp_path / "hd.png", np.zeros((90, 160, 3))), 28).image.shape == (3, 28, 56)
+    assert model_image_shape(160, 90, 28, 14) == (28, 56) and model_image_shape(90, 160, 28, 7) == (49, 28)
+
+
+def test_load_image_crops_a_centre_square_when_asked_and_says_so(tmp_path):
+    out = load_image(save_png(tmp_path / "wide.png", _thirds(30, 90)), 14, crop="square")
+    assert out.image.shape == (3, 14, 14)
+    centre = out.image[:, :, 2:-2]
     assert centre[1].min() > 0.95 and centre[0].max() < 0.05 and centre[2].max() < 0.05
+    assert out.cropped and out.crop == (30.0, 0.0, 60.0, 30.0)
+    assert out.crop_record() == {"width": 90, "height": 30, "crop": [30.0, 0.0, 60.0, 30.0], "cropped": True}
+    # another photo of the scene at another aspect ratio is centre-cropped to the first one's shape
+    tall = load_image(save_png(tmp_path / "tall.png", np.zeros((60, 30, 3))), 14, shape=(14, 42))
+    assert tall.image.shape == (3, 14, 42) and tall.cropped and tall.crop == (0.0, 25.0, 30.0, 35.0)
 
 
 def test_load_image_errors_name_the_file(tmp_path):
@@ -166,14 +189,15 @@ def read_png(path: Path) -> np.ndarray:
 
 def test_predict_writes_every_output(tiny_ckpt, tmp_path):
     rng = np.random.default_rng(0)
-    a = save_png(tmp_path / "a.png", rng.integers(0, 255, (40, 30, 3)))
-    b = save_png(tmp_path / "b view.jpg", rng.integers(0, 255, (36, 50, 3)))
+    a = save_png(tmp_path / "a.png", rng.integers(0, 255, (45, 30, 3)))  # 2:3 portrait -> 28 x 42
+    b = save_png(tmp_path / "b view.jpg", rng.integers(0, 255, (36, 50, 3)))  # landscape: cropped to 2:3
     out = tmp_path / "out"
     assert main(["--ckpt", str(tiny_ckpt), "--out", str(out), "--novel-frames", "3", "--no-progress",
                  str(a), str(b)]) == 0  # fmt: skip
+    h, w = 42, IMAGE_SIZE
 
     header = (out / "gaussians.ply").read_bytes().split(b"end_header\n")[0].decode()
-    assert f"element vertex {2 * IMAGE_SIZE * IMAGE_SIZE}" in header
+    assert f"element vertex {2 * h * w}" in header
     assert header.count("property float f_rest_") == 3 * ((SH_DEGREE + 1) ** 2 - 1)
 
     cams = json.loads((out / "cameras.json").read_text())
@@ -181,28 +205,82 @@ def test_predict_writes_every_output(tiny_ckpt, tmp_path):
     view0, view1 = cams["views"]
     np.testing.assert_allclose(view0["camera_to_world"], np.eye(4), atol=1e-6)  # the canonical frame
     k_norm, k_pix = np.array(view1["intrinsics_normalized"]), np.array(view1["intrinsics_pixels"])
-    np.testing.assert_allclose(k_pix[:2], k_norm[:2] * IMAGE_SIZE, rtol=1e-6)
+    np.testing.assert_allclose(k_pix[0], k_norm[0] * w, rtol=1e-6)
+    np.testing.assert_allclose(k_pix[1], k_norm[1] * h, rtol=1e-6)
+    assert k_pix[0, 0] == pytest.approx(k_pix[1, 1], rel=1e-5)  # square pixels
     c2w, w2c = np.array(view1["camera_to_world"]), np.array(view1["world_to_camera"])
     np.testing.assert_allclose(c2w @ w2c, np.eye(4), atol=1e-5)
-    assert view1["width"] == view1["height"] == IMAGE_SIZE
+    assert (view1["width"], view1["height"]) == (w, h)
+    assert view0["source"] == {"width": 30, "height": 45, "crop": [0.0, 0.0, 30.0, 45.0], "cropped": False}
+    assert view1["source"]["cropped"] and view1["source"]["crop"] == [13.0, 0.0, 37.0, 36.0]  # 24 x 36: 2:3
 
     for folder in ("inputs", "renders", "depth"):
         pngs = sorted((out / folder).glob("*.png"))
         assert [p.name for p in pngs] == ["00_a.png", "01_b view.png"]
-        assert Image.open(pngs[0]).size == (IMAGE_SIZE, IMAGE_SIZE)
+        assert Image.open(pngs[0]).size == (w, h)
     depth = np.load(out / "depth" / "00_a.npy")
-    assert depth.shape == (IMAGE_SIZE, IMAGE_SIZE) and ((depth >= 0.1 - 1e-4) & (depth <= 20.0 + 1e-4)).all()
+    assert depth.shape == (h, w) and ((depth >= 0.1 - 1e-4) & (depth <= 20.0 + 1e-4)).all()
     assert sorted(p.name for p in (out / "novel").iterdir()) == [
         "000.png",
         "001.png",
         "002.png",
         "trajectory.gif",
     ]
+    assert Image.open(out / "novel" / "001.png").size == (w, h)
     # The path starts at the first input camera and ends at the last: its end frames are the re-renders.
     assert np.abs(read_png(out / "novel" / "000.png") - read_png(out / "renders" / "00_a.png")).mean() < 1.0
     assert (
         np.abs(read_png(out / "novel" / "002.png") - read_png(out / "renders" / "01_b view.png")).mean() < 1.0
     )
+
+
+def test_a_2_to_1_photo_pair_gives_2_to_1_gaussians_renders_and_cameras(tiny_ckpt, tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    photos = [str(save_png(tmp_path / f"wide{i}.png", rng.integers(0, 255, (60, 120, 3)))) for i in range(2)]
+    out = tmp_path / "out"
+    assert main(["--ckpt", str(tiny_ckpt), "--out", str(out), "--novel-frames", "2", "--no-progress",
+                 *photos]) == 0  # fmt: skip
+    h, w = IMAGE_SIZE, 2 * IMAGE_SIZE
+    header = (out / "gaussians.ply").read_bytes().split(b"end_header\n")[0].decode()
+    assert f"element vertex {2 * h * w}" in header
+    for folder in ("inputs", "renders", "depth", "novel"):
+        assert {Image.open(p).size for p in (out / folder).glob("*.png")} == {(w, h)}, folder
+    assert np.load(out / "depth" / "01_wide1.npy").shape == (h, w)
+    cams = json.loads((out / "cameras.json").read_text())
+    for view in [*cams["views"], *cams["novel"]]:
+        k = np.array(view["intrinsics_normalized"])
+        assert k[0, 0] / k[1, 1] == pytest.approx(0.5, rel=1e-5)  # fx / fy = H / W: square pixels
+        assert view["fov_x_deg"] > view["fov_y_deg"]
+    assert not any(v["source"]["cropped"] for v in cams["views"])
+    assert "2 views of 56x28 pixels" in capsys.readouterr().out
+
+
+def test_predict_with_three_images_writes_three_views(tmp_path):
+    ckpt = write_tiny_checkpoint(tmp_path / "pool", view_aggregation="pool")
+    rng = np.random.default_rng(4)
+    images = [str(save_png(tmp_path / f"{i}.png", rng.integers(0, 255, (28, 28, 3)))) for i in range(3)]
+    out = tmp_path / "out"
+    assert main(["--ckpt", str(ckpt), "--out", str(out), "--novel-frames", "4", "--no-progress", *images]) == 0
+    header = (out / "gaussians.ply").read_bytes().split(b"end_header\n")[0].decode()
+    assert f"element vertex {3 * IMAGE_SIZE * IMAGE_SIZE}" in header
+    cams = json.loads((out / "cameras.json").read_text())
+    assert [v["image"] for v in cams["views"]] == ["0", "1", "2"]
+    np.testing.assert_allclose(cams["views"][0]["camera_to_world"], np.eye(4), atol=1e-6)
+    assert not np.allclose(cams["views"][2]["camera_to_world"], np.eye(4), atol=1e-7)
+    for folder in ("inputs", "renders", "depth"):
+        assert sorted(p.name for p in (out / folder).glob("*.png")) == ["00_0.png", "01_1.png", "02_2.png"]
+
+
+def test_the_patch_size_comes_from_the_model(tmp_path):
+    """A model with 7-pixel patches trained at 21 px: 21 is no multiple of DINOv2's 14, yet right here."""
+    ckpt = write_tiny_checkpoint(tmp_path / "p7", image_size=21, options={"patch_size": 7})
+    assert load_checkpoint(ckpt).patch_size == 7
+    images = [str(save_png(tmp_path / f"{i}.png", np.full((30, 40, 3), 40 * i + 50))) for i in range(2)]
+    out = tmp_path / "out"
+    assert main(["--ckpt", str(ckpt), "--out", str(out), "--novel-frames", "2", "--no-progress", *images]) == 0
+    assert Image.open(out / "renders" / "00_0.png").size == (28, 21)  # 4:3 -> 4 x 3 patches of 7
+    with pytest.raises(SystemExit, match="--size 16 is not a multiple of the model's patch size 7"):
+        main(["--ckpt", str(ckpt), "--out", str(tmp_path / "o2"), "--size", "16", *images])
 
 
 def test_predict_on_cpu_renders_with_torch_on_a_gsplat_machine(tiny_ckpt, tmp_path, pretend_gsplat):
@@ -222,9 +300,9 @@ def test_predict_rejects_bad_input(tiny_ckpt, tmp_path):
         main(["--ckpt", str(tiny_ckpt), "--out", out, str(good), str(bad)])
     with pytest.raises(SystemExit, match="at least two images"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, str(good)])
-    with pytest.raises(SystemExit, match="multiple of the patch size"):
+    with pytest.raises(SystemExit, match="not a multiple of the model's patch size 14"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, "--size", "30", str(good), str(good)])
-    with pytest.raises(SystemExit, match="built for 2 context views, got 3"):
+    with pytest.raises(SystemExit, match="built for 2 context views and got 3.*view_aggregation: pool"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, str(good), str(good), str(good)])
     with pytest.raises(SystemExit, match="ply-sh-degree"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, "--ply-sh-degree", "4", str(good), str(good)])
@@ -281,10 +359,15 @@ def test_16_bit_images_keep_their_range(tmp_path):
     path = tmp_path / "grey16.png"
     Image.fromarray(ramp).save(path)
     assert Image.open(path).mode.startswith("I")
-    out = load_image(path, 28)
+    out = load_image(path, 28).image
     np.testing.assert_allclose(out[0].numpy(), ramp / 65535.0, atol=2e-3)  # scaled, not clipped at 255
     assert (out[0] > 0.99).float().mean() < 0.1  # (clipping turned 91 % of such a picture white)
     assert torch.equal(out[0], out[1]) and torch.equal(out[1], out[2])
+    # a large 16-bit photo, shrunk before it becomes floats, keeps its range too
+    big = np.tile(np.linspace(0, 65535, 280).round().astype(np.uint16), (280, 1))
+    Image.fromarray(big).save(tmp_path / "big16.png")
+    out = load_image(tmp_path / "big16.png", 28).image
+    np.testing.assert_allclose(out[0].numpy(), ramp / 65535.0, atol=2e-2)
 
 
 def test_transparent_pixels_are_composited_over_the_background(tmp_path):
@@ -293,14 +376,14 @@ def test_transparent_pixels_are_composited_over_the_background(tmp_path):
     rgba[:, :14, 3] = 255
     path = tmp_path / "cutout.png"
     Image.fromarray(rgba, mode="RGBA").save(path)
-    out = load_image(path, 28, background=(0.0, 0.0, 1.0))
+    out = load_image(path, 28, background=(0.0, 0.0, 1.0)).image
     assert out[0, :, :12].min() > 0.99 and out[2, :, :12].max() < 0.01  # opaque: its own colour
     assert out[0, :, 16:].max() < 0.01 and out[2, :, 16:].min() > 0.99  # transparent: the background
 
 
 def test_exif_orientation_is_applied(tmp_path):
     # Stored 40 wide x 20 high, top half white; EXIF 6 says "rotate 90 degrees clockwise to view": upright it
-    # is 20 x 40 with the white half on the right, which the centre crop keeps.
+    # is 20 x 40 with the white half on the right.
     stored = np.zeros((20, 40, 3), np.uint8)
     stored[:10] = 255
     exif = Image.Exif()
@@ -308,15 +391,56 @@ def test_exif_orientation_is_applied(tmp_path):
     path = tmp_path / "phone.jpg"
     Image.fromarray(stored).save(path, exif=exif, quality=100)
     out = load_image(path, 14)
-    assert out[:, :, 10:].mean() > 0.9 and out[:, :, :4].mean() < 0.1
+    assert out.source == (20, 40) and out.image.shape == (3, 28, 14)  # upright: portrait
+    assert out.image[:, :, 9:].mean() > 0.9 and out.image[:, :, :5].mean() < 0.1
+    square = load_image(path, 14, crop="square").image
+    assert square[:, :, 10:].mean() > 0.9 and square[:, :, :4].mean() < 0.1
+    # stored 4 times larger, it is decoded reduced, turned the same way
+    Image.fromarray(np.kron(stored, np.ones((8, 8, 1), np.uint8))).save(path, exif=exif, quality=100)
+    out = load_image(path, 14)
+    assert (
+        out.image.shape == (3, 28, 14) and out.image[:, :, 9:].mean() > 0.9 and out.image[:, :, :5].mean() < 0.1
+    )
 
 
 def test_images_too_small_for_the_model_are_refused_with_the_minimum(tmp_path):
     tiny = save_png(tmp_path / "dot.png", np.zeros((1, 1, 3)))
-    expected = r"is 1x1 pixels: its shorter side must be at least 14 for this model's 28-pixel input \(images"
-    with pytest.raises(ValueError, match=expected + r" are upscaled by at most 2x\)"):
+    expected = r"is 1x1 pixels, too small for this model's 28x28 input \(images are upscaled by at most 2x\)"
+    with pytest.raises(UserError, match=expected + ": give one of at least 14x14 pixels"):
         load_image(tiny, 28)
-    assert load_image(save_png(tmp_path / "half.png", np.zeros((14, 20, 3))), 28).shape == (3, 28, 28)
+    assert load_image(save_png(tmp_path / "half.png", np.zeros((14, 21, 3))), 28).image.shape == (3, 28, 42)
+    with pytest.raises(UserError, match="at least 21x14 pixels"):
+        load_image(save_png(tmp_path / "narrow.png", np.zeros((14, 20, 3))), 28, shape=(28, 42))
+
+
+def test_a_huge_photo_is_never_decoded_to_floats_at_full_size(tmp_path, monkeypatch):
+    from aesplat import predict
+
+    seen = []
+    to_float = predict._to_rgb_float
+    monkeypatch.setattr(predict, "_to_rgb_float", lambda img, *a: seen.append(img.size) or to_float(img, *a))
+    rng = np.random.default_rng(1)
+    photo = np.kron(rng.integers(0, 255, (6, 12, 3)), np.ones((200, 200, 1))).astype(np.uint8)  # 2400 x 1200
+    for name in ("huge.jpg", "huge.png"):
+        Image.fromarray(photo).save(tmp_path / name)
+        out = load_image(tmp_path / name, 28)
+        assert out.image.shape == (3, 28, 56) and not out.cropped
+        w, h = seen.pop()
+        assert 112 <= w <= 224 and 56 <= h <= 112, (name, w, h)  # 2 to 4 times the model image, not 2400x1200
+        pixels = torch.from_numpy(photo).permute(2, 0, 1)[None].float() / 255
+        reference = torch.nn.functional.interpolate(pixels, size=(28, 56), mode="area")[0]
+        assert (out.image - reference).abs().mean() < 0.02  # the same picture
+
+
+def test_a_decompression_bomb_is_refused_in_one_line(tiny_ckpt, tmp_path, monkeypatch):
+    bomb = save_png(tmp_path / "bomb.png", np.zeros((100, 100, 3)))
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)  # Pillow refuses more than twice this many pixels
+    with pytest.raises(UserError, match="bomb.png' is refused as a possible decompression bomb") as err:
+        load_image(bomb, 28)
+    assert "\n" not in str(err.value)
+    with pytest.raises(SystemExit, match="aesplat predict: .*decompression bomb"):
+        main(["--ckpt", str(tiny_ckpt), "--out", str(tmp_path / "out"), str(bomb), str(bomb)])
+    assert not (tmp_path / "out").exists()
 
 
 # ----------------------------------------------------------------------------------------------- output folder
@@ -383,6 +507,6 @@ def test_overwrite_replaces_the_folder_whole_and_a_failure_leaves_it_untouched(
 
 def test_a_refused_prediction_creates_nothing(tiny_ckpt, tmp_path):
     good = str(save_png(tmp_path / "good.png", np.zeros((28, 28, 3))))
-    with pytest.raises(SystemExit, match="built for 2 context views, got 3"):
+    with pytest.raises(SystemExit, match="built for 2 context views and got 3"):
         main(["--ckpt", str(tiny_ckpt), "--out", str(tmp_path / "out"), good, good, good])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["good.png"]

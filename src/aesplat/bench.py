@@ -6,7 +6,10 @@ For a trained model on evaluation scenes, each knob is swept on its own from a b
 data's resolution, all Gaussians, fp32, the default renderer backend):
 
     sh_degree         SH bands used when rendering (0 .. the model's degree)
-    input_size        side of the images fed to the model (multiples of 14); Gaussians rendered at full size
+    context_views     context views fed to the model (2, 3, 4, 6), chosen from each evaluation sample's
+                      (``context_subset``), rendered at the same target views
+    input_size        side of the images fed to the model (multiples of its patch size); Gaussians rendered
+                      at full size
     render_size       side of the rendered image, upsampled (bilinear) to full size for the metrics
     keep_fraction     only the most opaque fraction of the Gaussians is rendered
     min_opacity       Gaussians below an opacity threshold are dropped
@@ -14,7 +17,8 @@ data's resolution, all Gaussians, fp32, the default renderer backend):
     backend           renderer backends available here (torch, torch compiled, gsplat with CUDA)
 
 Quality is PSNR (per image, then averaged) and SSIM against the ground-truth target images, rendered with
-the *predicted* target cameras (the data set's for a checkpoint trained with ``model.cameras: dataset``).
+the *predicted* target cameras (the data set's for a checkpoint trained with ``model.cameras: dataset``),
+and the rotation error of the predicted cameras against the data set's (degrees, views relative to view 0).
 Time is milliseconds per scene for the model forward and for rendering the target views: median over repeats
 of each scene (warm-up runs excluded), then averaged over scenes.
 
@@ -49,10 +53,8 @@ from .model import forward_batch
 from .predict import HelpFormatter
 from .render import render
 from .threads import ENV_OVERRIDE, apply_thread_policy
-from .train.metrics import psnr, ssim
+from .train.metrics import psnr, relative_pose_errors, ssim
 from .types import BatchedExample, BatchedViews, Gaussians
-
-PATCH = 14  # the encoder's patch size: model inputs are multiples of it
 
 # ---------------------------------------------------------------------------------------------------
 # Settings: one value per knob
@@ -63,7 +65,8 @@ class Setting:
     """One point of a sweep: a value for every knob. ``None`` sizes mean the data's own resolution."""
 
     sh_degree: int | None = None  # SH bands used at render time (None: all the model predicts)
-    input_size: int | None = None  # model input side, a multiple of 14
+    context_views: int | None = None  # context views fed to the model (None: every one the sample holds)
+    input_size: int | None = None  # model input side, a multiple of the model's patch size
     render_size: int | None = None  # render side; upsampled to the data's side for the metrics
     keep_fraction: float = 1.0  # most opaque fraction of the Gaussians kept
     min_opacity: float = 0.0  # Gaussians below this opacity dropped
@@ -73,7 +76,7 @@ class Setting:
 
     def forward_key(self) -> tuple:
         """Settings with the same key share the model forward (only rendering differs)."""
-        return (self.input_size, self.precision)
+        return (self.context_views, self.input_size, self.precision)
 
 
 @dataclass(frozen=True)
@@ -85,15 +88,42 @@ class Point:
     setting: Setting
 
 
-def model_input_sizes(native: int, scales: Sequence[float]) -> list[int]:
-    """Input sides for ``scales`` of the native side: multiples of 14 (at least 28), unique, sorted."""
-    return sorted({max(2 * PATCH, round(native * s / PATCH) * PATCH) for s in scales} | {native})
+def model_input_sizes(native: int, scales: Sequence[float], patch: int) -> list[int]:
+    """Input sides for ``scales`` of the native side: multiples of ``patch`` (at least two), unique, sorted."""
+    return sorted({max(2 * patch, round(native * s / patch) * patch) for s in scales} | {native})
+
+
+def context_subset(frames: Tensor, count: int) -> list[int]:
+    """Which ``count`` of a sample's context views to feed the model, given their frame indices [Vc]: views
+    spread evenly over the sample's frame span (its first and last frames, then evenly between), always with
+    view 0, the reference frame, which stays first; the others in their order in the sample."""
+    v = frames.shape[0]
+    if not 2 <= count <= v:
+        raise ValueError(f"the evaluation samples hold {v} context views, not {count}: evaluate on samples "
+                         "with more (aesplat bench --data-context-views)")  # fmt: skip
+    by_frame = sorted(range(v), key=lambda i: (int(frames[i]), i))
+    picked = {by_frame[round(j * (v - 1) / (count - 1))] for j in range(count)}
+    if 0 not in picked:  # the reference frame replaces the picked view nearest to it in frame order
+        rank = by_frame.index(0)
+        picked.remove(min(picked, key=lambda i: (abs(by_frame.index(i) - rank), i)))
+        picked.add(0)
+    return [0, *sorted(picked - {0})]
+
+
+def select_context(scene: BatchedExample, count: int | None) -> BatchedExample:
+    """``scene`` (B = 1) with ``count`` of its context views (``context_subset``); None: all of them."""
+    if count is None or count == scene.context.num_views:
+        return scene
+    keep = context_subset(scene.context.index[0], count)
+    return replace(scene, context=scene.context.apply(lambda t: t[:, keep]))
 
 
 def default_sweep(
     sh_degree: int,
     native_size: int,
     *,
+    patch: int = 14,
+    context_views: Sequence[int] = (2, 3, 4, 6),
     backends: Sequence[str] = ("torch",),
     input_scales: Sequence[float] = (0.5, 0.75, 1.0),
     render_scales: Sequence[float] = (0.25, 0.5, 0.75, 1.0),
@@ -105,6 +135,10 @@ def default_sweep(
     knobs: Iterable[str] | None = None,
 ) -> tuple[Setting, list[Point]]:
     """Every knob swept alone from the baseline ``Setting(backend=backends[0])``; returns (baseline, points).
+
+    patch: the model's patch size (input sides are multiples of it).
+    context_views: counts of context views to feed the model; the baseline feeds every one a sample holds,
+    which is the point of the same count.
 
     tile_sizes: renderer tile sides to try (a speed-only knob: the image does not change); empty = skip.
     compiled: add a "torch compiled" backend point (``render(..., compile=True)``).
@@ -119,8 +153,10 @@ def default_sweep(
     series: dict[str, list[Point]] = {
         "sh_degree": [Point("sh_degree", f"SH {d}", replace(base, sh_degree=None if d == sh_degree else d))
                       for d in range(sh_degree + 1)],
+        "context_views": [Point("context_views", f"{c} views", replace(base, context_views=c))
+                          for c in sorted(set(context_views))],
         "input_size": [Point("input_size", f"{s} px", replace(base, input_size=own(s)))
-                       for s in model_input_sizes(native_size, input_scales)],
+                       for s in model_input_sizes(native_size, input_scales, patch)],
         "render_size": [Point("render_size", f"{s} px", replace(base, render_size=own(s)))
                         for s in render_sizes],
         "keep_fraction": [Point("keep_fraction", f"{100 * f:g} %", replace(base, keep_fraction=f))
@@ -197,6 +233,7 @@ class Row:
     label: str
     psnr: float = math.nan
     ssim: float = math.nan
+    rot_err_deg: float = math.nan  # rotation error of the predicted cameras (none with the data set's)
     forward_ms: float = math.nan
     render_ms: float = math.nan
     total_ms: float = math.nan
@@ -214,6 +251,7 @@ class _Forward:
     extrinsics: Tensor  # [1, Vt, 4, 4] target cameras (predicted, or the data set's)
     intrinsics: Tensor  # [1, Vt, 3, 3]
     ms: float
+    rot_err_deg: float  # mean over the views but view 0 (NaN with the data set's cameras)
 
 
 class Bench:
@@ -258,6 +296,7 @@ class Bench:
                     else nullcontext())  # fmt: skip
         results = []
         for i, scene in enumerate(self.scenes):
+            scene = select_context(scene, setting.context_views)
             size = setting.input_size
             resized = replace(scene, context=resize_views(scene.context, size),
                               target=resize_views(scene.target, size))  # fmt: skip
@@ -268,12 +307,17 @@ class Bench:
 
             out, ms = time_call(run, self.device, self.repeats, self.warmup if i == 0 else 0)
             vc = scene.context.num_views
+            rot_err = math.nan
+            if self.cameras == "predicted":
+                truth = torch.cat([scene.context.extrinsics, scene.target.extrinsics], dim=1)
+                rot_err = relative_pose_errors(out.extrinsics, truth)[0].mean().item()
             results.append(
                 _Forward(
                     gaussians=out.gaussians.to(dtype=torch.float32),
                     extrinsics=out.extrinsics[:, vc:].float(),
                     intrinsics=out.intrinsics[:, vc:].float(),
                     ms=ms,
+                    rot_err_deg=rot_err,
                 )
             )
         self._forwards[key] = results
@@ -311,6 +355,7 @@ class Bench:
             row.skipped = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:200]
             return row
         row.psnr, row.ssim = statistics.fmean(psnrs), statistics.fmean(ssims)
+        row.rot_err_deg = statistics.fmean(f.rot_err_deg for f in forwards)
         row.forward_ms = statistics.fmean(f.ms for f in forwards)
         row.render_ms = statistics.fmean(render_ms)
         row.total_ms = row.forward_ms + row.render_ms
@@ -324,7 +369,7 @@ class Bench:
         The first few calls in a process are several times slower on the CPU (allocator and kernel warm-up),
         longer than one per-setting warm-up run absorbs; without this the first settings measured look slow.
         """
-        scene = self.scenes[0]
+        scene = select_context(self.scenes[0], setting.context_views)
         options = {**self.render_kwargs, **dict(setting.render_options), "backend": setting.backend}
         for _ in range(runs):
             out = forward_batch(self.model, scene, self.cameras)
@@ -374,11 +419,12 @@ def single_scenes(batches: Iterable[BatchedExample], limit: int, device: torch.d
 # Reporting
 
 
-CSV_FIELDS = ["knob", "label", "psnr", "ssim", "forward_ms", "render_ms", "total_ms", "gaussians", "baseline",
-              "skipped"]  # fmt: skip
+CSV_FIELDS = ["knob", "label", "psnr", "ssim", "rot_err_deg", "forward_ms", "render_ms", "total_ms",
+              "gaussians", "baseline", "skipped"]  # fmt: skip
 
 KNOB_TITLES = {
     "sh_degree": "SH degree at render",
+    "context_views": "context views",
     "input_size": "model input resolution",
     "render_size": "render resolution",
     "keep_fraction": "Gaussians kept (most opaque)",
@@ -414,7 +460,8 @@ def markdown_tables(rows: Sequence[Row], meta: dict) -> str:
     ]
     if base is not None:
         lines += [
-            f"Baseline: all SH bands, {meta.get('native_size', '?')} px, all Gaussians, fp32, "
+            f"Baseline: every context view of a sample ({meta.get('context_views', '?')}), all SH bands, "
+            f"{meta.get('native_size', '?')} px, all Gaussians, fp32, "
             f"`{base.setting.get('backend')}` backend — PSNR {base.psnr:.2f} dB, SSIM {base.ssim:.4f}, "
             f"{base.total_ms:.1f} ms ({base.forward_ms:.1f} forward + {base.render_ms:.1f} render).",
             "",
@@ -423,20 +470,21 @@ def markdown_tables(rows: Sequence[Row], meta: dict) -> str:
         lines += [
             f"## {KNOB_TITLES.get(knob, knob)}",
             "",
-            "| setting | PSNR (dB) | Δ PSNR | SSIM | forward ms | render ms | total ms | speed-up "
-            "| Gaussians |",
-            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+            "| setting | PSNR (dB) | Δ PSNR | SSIM | rot. err (°) | forward ms | render ms | total ms "
+            "| speed-up | Gaussians |",
+            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
         ]
         for r in (r for r in rows if r.knob == knob):
             label = f"**{r.label}**" if r.baseline else r.label
             if r.skipped:
-                lines.append(f"| {label} | not measured here: {r.skipped} | | | | | | | |")
+                lines.append(f"| {label} | not measured here: {r.skipped} | | | | | | | | |")
                 continue
             dpsnr = f"{r.psnr - base.psnr:+.2f}" if base else ""
             speed = f"{base.total_ms / r.total_ms:.2f}×" if base else ""
+            rot = f"{r.rot_err_deg:.2f}" if math.isfinite(r.rot_err_deg) else "–"
             lines.append(
-                f"| {label} | {r.psnr:.2f} | {dpsnr} | {r.ssim:.4f} | {r.forward_ms:.1f} | {r.render_ms:.1f} | "
-                f"{r.total_ms:.1f} | {speed} | {r.gaussians:,.0f} |"
+                f"| {label} | {r.psnr:.2f} | {dpsnr} | {r.ssim:.4f} | {rot} | {r.forward_ms:.1f} | "
+                f"{r.render_ms:.1f} | {r.total_ms:.1f} | {speed} | {r.gaussians:,.0f} |"
             )
         lines.append("")
     lines.append("Bold: the baseline setting. Plot: `accuracy_vs_time.png`; raw figures: `bench.csv`.")
@@ -540,6 +588,10 @@ def _floats(text: str) -> list[float]:
     return [float(x) for x in text.split(",") if x.strip()]
 
 
+def _ints(text: str) -> list[int]:
+    return [int(x) for x in text.split(",") if x.strip()]
+
+
 def _names(text: str) -> list[str]:
     return [x.strip() for x in text.split(",") if x.strip()]
 
@@ -563,6 +615,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--warmup", type=int, default=1, help="untimed runs before each setting")
     parser.add_argument("--process-warmup", type=int, default=5,
                         help="untimed baseline passes before the first measurement")  # fmt: skip
+    parser.add_argument("--context-views", type=_ints, default=[2, 3, 4, 6],
+                        help="context-view counts fed to the model, chosen from each evaluation sample's (a "
+                        "count above what the samples hold, or one the model cannot take, is reported as not "
+                        "measured)")  # fmt: skip
+    parser.add_argument("--data-context-views", type=int, default=None,
+                        help="context views the evaluation samples hold (default: the run's "
+                        "data.num_context_views)")  # fmt: skip
     parser.add_argument("--knobs", type=_names, default=None,
                         help=f"comma-separated subset of {', '.join(KNOB_TITLES)} (default: all)")  # fmt: skip
     parser.add_argument(
@@ -606,9 +665,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def evaluation_scenes(loaded, data_root: str | None, image_size: int | None, limit: int,
-                      device: torch.device) -> list[BatchedExample]:  # fmt: skip
-    """The first ``limit`` test scenes of the run's data set, one per example, on ``device``."""
+def evaluation_scenes(loaded, data_root: str | None, image_size: int | None, limit: int, device: torch.device,
+                      context_views: int | None = None) -> list[BatchedExample]:  # fmt: skip
+    """The first ``limit`` test scenes of the run's data set, one per example, on ``device``;
+    ``context_views``: the number of context views its evaluation samples hold (default: the run's)."""
     from .data import DataModule
 
     data = dict(loaded.data or {})
@@ -618,6 +678,8 @@ def evaluation_scenes(loaded, data_root: str | None, image_size: int | None, lim
         raise SystemExit("aesplat bench: no config.yaml beside the checkpoint's run; give --data-root DIR")
     if image_size is not None:
         data["image_size"] = image_size
+    if context_views is not None:
+        data["num_context_views"] = context_views
     data.update(num_workers=0, eval_batch_size=1)
     known = set(inspect.signature(DataModule).parameters)
     datamodule = DataModule(**{k: v for k, v in data.items() if k in known})
@@ -640,7 +702,8 @@ def main(argv: list[str] | None = None) -> int:
         loaded = load_checkpoint(args.ckpt, device)
     except (FileNotFoundError, ValueError) as err:
         raise SystemExit(f"aesplat bench: {err}") from err
-    scenes = evaluation_scenes(loaded, args.data_root, args.image_size, args.scenes, device)
+    scenes = evaluation_scenes(loaded, args.data_root, args.image_size, args.scenes, device,
+                               args.data_context_views)  # fmt: skip
     if not scenes:
         raise SystemExit("aesplat bench: the test split holds no scenes")
     native = scenes[0].target.images.shape[-1]
@@ -648,7 +711,8 @@ def main(argv: list[str] | None = None) -> int:
     auto = get_backend("auto", device)[0]
     backends = args.backends or (["gsplat", "torch"] if auto == "gsplat" else ["torch"])
     baseline, points = default_sweep(
-        loaded.sh_degree, native, backends=backends, input_scales=args.input_scales,
+        loaded.sh_degree, native, patch=loaded.patch_size, context_views=args.context_views,
+        backends=backends, input_scales=args.input_scales,
         render_scales=args.render_scales, keep_fractions=args.keep_fractions, min_opacities=args.min_opacities,
         precisions=args.precisions, tile_sizes=[int(t) for t in args.tile_sizes], compiled=args.compile,
         knobs=args.knobs,
@@ -667,6 +731,8 @@ def main(argv: list[str] | None = None) -> int:
         out = Path("outputs/bench")
     meta = {
         **machine_meta(device), "ckpt": str(loaded.path), "scenes": len(scenes), "native_size": native,
+        "context_views": scenes[0].context.num_views,
+        "view_aggregation": loaded.net.get("view_aggregation", "concat"),
         "repeats": args.repeats, "warmup": args.warmup, "process_warmup": args.process_warmup,
         "sh_degree": loaded.sh_degree,
         "model_size": loaded.net.get("size"), "appearance": loaded.net.get("appearance"),

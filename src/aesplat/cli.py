@@ -3,6 +3,8 @@
     aesplat fit|validate|test -c conf/FILE.yaml [-c conf/OVERLAY.yaml …] [--dotted.key value …]
     aesplat predict …     (aesplat.predict)
     aesplat bench …       (aesplat.bench)
+    aesplat export …      (aesplat.export.command)
+    aesplat view …        (aesplat.view)
 
 fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
@@ -414,10 +416,14 @@ def main(argv: Sequence[str] | None = None) -> None:
     if argv in ([], ["-h"], ["--help"]):
         print("aesplat fit|validate|test -c CONFIG.yaml [--key value ...]  train / evaluate (LightningCLI)")
         print("aesplat predict --help                    images -> Gaussians, cameras, renders")
-        print("aesplat bench --help                      accuracy-versus-time report\n")
+        print("aesplat bench --help                      accuracy-versus-time report")
+        print("aesplat export --help                     a prediction for COLMAP, nerfstudio, web viewers")
+        print("aesplat view --help                       a prediction in the browser\n")
         argv = ["--help"]
     command = (
-        argv[0] if argv and argv[0] in ("predict", "bench", "fit", "validate", "test") else "fit|validate|test"
+        argv[0]
+        if argv and argv[0] in ("predict", "bench", "export", "view", "fit", "validate", "test")
+        else "fit|validate|test"
     )
     # A UserError is the user's to mend: one line; anything else is a bug and keeps its traceback.
     run_reporting_user_errors(command, lambda: _run_command(command, argv))
@@ -432,6 +438,14 @@ def _run_command(command: str, argv: list[str]) -> None:
         from aesplat.bench import main as bench_main
 
         bench_main(argv[1:])
+    elif command == "export":
+        from aesplat.export.command import main as export_main
+
+        export_main(argv[1:])
+    elif command == "view":
+        from aesplat.view import main as view_main
+
+        view_main(argv[1:])
     else:
         run_lightning(argv)
 

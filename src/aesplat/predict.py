@@ -2,14 +2,20 @@
 
     aesplat predict --ckpt CKPT --out DIR IMAGE IMAGE [IMAGE ...]
 
+The first image is the reference frame (the world of the outputs), the others follow in the order given.
+
 writes
 
     DIR/gaussians.ply     one Gaussian per input pixel, reference 3DGS layout (see aesplat.export.ply)
     DIR/cameras.json      predicted camera of every input view (and of every novel frame)
-    DIR/inputs/           the images as the model saw them (resized, centre-cropped)
+    DIR/inputs/           the images as the model saw them (resized at their aspect ratio, or cropped: see
+                          cameras.json, views[].source)
     DIR/renders/          the input views re-rendered from the Gaussians with the predicted cameras
     DIR/depth/            predicted depth per input view: colour-mapped PNG and raw float32 .npy
     DIR/novel/            frames along a path through the predicted input cameras, and trajectory.gif
+    DIR/colmap/, DIR/nerfstudio/, DIR/gaussians.splat
+                          with ``--export colmap,nerfstudio,splat`` (see aesplat.export; ``aesplat export``
+                          writes them from a prediction folder later)
 
 DIR is written whole: into a hidden folder beside it, renamed into place once everything is written (a
 failure leaves DIR as it was). A non-empty DIR is refused unless ``--overwrite``, which replaces it as a whole.
@@ -37,7 +43,14 @@ from torch import Tensor
 from tqdm import tqdm
 
 from .errors import MissingFileError, UserError, check_writable, run_reporting_user_errors
-from .export import VIEWER_MAX_SH_DEGREE, drop_transparent, write_ply
+from .export import (
+    EXPORTS,
+    VIEWER_MAX_SH_DEGREE,
+    drop_transparent,
+    export_prediction,
+    parse_formats,
+    write_ply,
+)
 from .geometry import (
     denormalize_intrinsics,
     focal_to_fov,
@@ -50,55 +63,169 @@ from .render import render
 from .threads import ENV_OVERRIDE, apply_thread_policy
 from .types import Gaussians
 
-PATCH = 14  # the encoder's patch size: the model's image side must be a multiple of it
-
-
 # ---------------------------------------------------------------------------------------------------
 # Images in, images out
 
 
-MAX_UPSCALE = 2  # an image whose shorter side is under size / MAX_UPSCALE is refused, not blown up
+MAX_UPSCALE = 2  # an image smaller than half the model's input (on either axis) is refused, not blown up
+CROPS = ("none", "square")  # the photo's own aspect ratio, or a centre square (the training data's shape)
+ORIENTATION = 0x0112  # EXIF tag: how to turn the stored pixels to see the photo upright
 
 
-def load_image(path: str | Path, size: int, background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Tensor:
-    """Read an image, resize its shorter side to ``size``, centre-crop a square -> [3, size, size] in [0, 1].
+@dataclass(frozen=True)
+class InputImage:
+    """One photo as the model sees it, and what part of the photo that is.
 
-    The EXIF orientation is applied first (a photo is seen upright). 16-bit and float images keep their full
-    range (scaled, not clipped, to [0, 1]). Transparent pixels are composited over ``background`` (the colour
-    the model renders on). An image whose shorter side is under ``size / MAX_UPSCALE`` pixels is refused.
-    Raises UserError naming the file when it cannot be read as an image or is too small.
+    image   [3, H, W] float in [0, 1], H and W multiples of the model's patch size
+    source  (width, height) of the photo in pixels, upright (EXIF orientation applied)
+    crop    (left, top, right, bottom) of the photo, in its pixels, that ``image`` shows: the whole photo
+            unless its aspect ratio differs from the model image's (a centre crop then)
+    """
+
+    image: Tensor
+    source: tuple[int, int]
+    crop: tuple[float, float, float, float]
+
+    @property
+    def cropped(self) -> bool:
+        """Whether part of the photo is left out (more than half a source pixel on a side)."""
+        w, h = self.source
+        left, top, right, bottom = self.crop
+        return max(left, top, w - right, h - bottom) > 0.5
+
+    def crop_record(self) -> dict:
+        """What ``cameras.json`` says of the photo: its size and the part of it the model saw."""
+        return {"width": self.source[0], "height": self.source[1], "crop": [round(c, 2) for c in self.crop],
+                "cropped": self.cropped}  # fmt: skip
+
+
+def model_image_shape(width: int, height: int, size: int, patch: int, crop: str = "none") -> tuple[int, int]:
+    """(H, W) of the model image for a photo of ``width`` x ``height``: its shorter side ``size`` (a multiple of
+    ``patch``) and its longer side the multiple of ``patch`` nearest to the photo's aspect ratio, so that the
+    token grid covers the whole photo with square pixels (what the rounding leaves over, under half a patch,
+    is centre-cropped); ``crop="square"``: ``size`` x ``size``."""
+    if crop not in CROPS:
+        raise UserError(f"unknown crop {crop!r}; choose one of {', '.join(CROPS)}")
+    if crop == "square":
+        return size, size
+    longer = max(size, round(size * max(width, height) / min(width, height) / patch) * patch)
+    return (size, longer) if width >= height else (longer, size)
+
+
+def photo_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image file, upright (EXIF orientation applied), read from its header only."""
+    with _open_image(Path(path)) as img:
+        return _upright_size(img)
+
+
+def load_image(
+    path: str | Path,
+    size: int,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    *,
+    patch: int = 14,
+    shape: tuple[int, int] | None = None,
+    crop: str = "none",
+) -> InputImage:
+    """Read a photo as the model sees it: resized with square pixels to ``shape`` = (H, W), by default
+    ``model_image_shape`` of the photo (its shorter side ``size``, its aspect ratio kept); a photo of another
+    aspect ratio than ``shape`` is centre-cropped to it (``InputImage.crop`` says what was kept).
+
+    The photo is decoded reduced where it is much larger than needed (JPEG: in the decoder; other formats: a
+    box filter on its 8/16-bit pixels), never as floats at full size. The EXIF orientation is applied first
+    (a photo is seen upright). 16-bit and float images keep their full range (scaled, not clipped, to
+    [0, 1]). Transparent pixels are composited over ``background`` (the colour the model renders on). A photo
+    smaller than half of ``shape`` on either axis is refused. Raises UserError naming the file when it cannot
+    be read as an image, is too small, or is over Pillow's decompression-bomb limit.
     """
     path = Path(path)
+    try:
+        with _open_image(path) as img:
+            width, height = _upright_size(img)
+            out_h, out_w = shape or model_image_shape(width, height, size, patch, crop)
+            scale = max(out_w / width, out_h / height)  # photo pixels -> model pixels, covering the model image
+            if scale > MAX_UPSCALE:
+                raise UserError(
+                    f"input image {str(path)!r} is {width}x{height} pixels, too small for this model's "
+                    f"{out_w}x{out_h} input (images are upscaled by at most {MAX_UPSCALE}x): give one of at "
+                    f"least {math.ceil(out_w / MAX_UPSCALE)}x{math.ceil(out_h / MAX_UPSCALE)} pixels"
+                )
+            # Pixels worth decoding: twice the model image's, so that its antialiased resize has some to filter.
+            need = (min(width, math.ceil(2 * width * scale)), min(height, math.ceil(2 * height * scale)))
+            turned = img.getexif().get(ORIENTATION, 1) in (5, 6, 7, 8)  # stored turned by 90 degrees
+            img.draft(img.mode, need[::-1] if turned else need)  # JPEG: decoded at 1/2, 1/4, 1/8; else no-op
+            ImageOps.exif_transpose(img, in_place=True)  # in place: no copy of a large decoded photo
+            drafted = round(width / img.width)  # the JPEG decoder's whole scale factor (1 without draft)
+            img, sixteen_bit, reduced = _reduce(img, need)
+            array = _to_rgb_float(img, background, sixteen_bit)
+            factor = drafted * reduced  # decoded pixel i covers photo pixels [i·factor, (i + 1)·factor)
+    except UserError:
+        raise
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        raise _unreadable(path, err) from None
+    # The part of the photo the model image shows, centred: in the photo's pixels, then in the decoded ones.
+    box_w, box_h = min(width, out_w / scale), min(height, out_h / scale)  # one of them the photo's own side
+    left, top = (width - box_w) / 2, (height - box_h) / 2
+    x0, y0 = round(left / factor), round(top / factor)
+    x1, y1 = max(x0 + 1, round((left + box_w) / factor)), max(y0 + 1, round((top + box_h) / factor))
+    tensor = torch.from_numpy(np.ascontiguousarray(array[y0:y1, x0:x1])).permute(2, 0, 1)[None]  # [1, 3, h, w]
+    tensor = torch.nn.functional.interpolate(tensor, size=(out_h, out_w), mode="bicubic", antialias=True,
+                                             align_corners=False)  # fmt: skip
+    return InputImage(
+        tensor[0].clamp(0, 1).contiguous(), (width, height), (left, top, left + box_w, top + box_h)
+    )
+
+
+def _open_image(path: Path) -> Image.Image:
+    """``Image.open``; what a user's file can cause is one line: missing, unreadable, a decompression bomb."""
     if not path.is_file():
         raise MissingFileError(f"input image {str(path)!r} does not exist (or is not a file)")
     try:
-        with Image.open(path) as img:
-            img = ImageOps.exif_transpose(img)
-            array = _to_rgb_float(img, background)
-    except (UnidentifiedImageError, OSError, SyntaxError) as err:
-        raise UserError(f"cannot read {str(path)!r} as an image ({err}); give PNG/JPEG/... files") from None
-    h, w = array.shape[:2]
-    smallest = max(1, math.ceil(size / MAX_UPSCALE))
-    if min(w, h) < smallest:
+        return Image.open(path)
+    except Image.DecompressionBombError as err:
         raise UserError(
-            f"input image {str(path)!r} is {w}x{h} pixels: its shorter side must be at least {smallest} for "
-            f"this model's {size}-pixel input (images are upscaled by at most {MAX_UPSCALE}x)"
-        )
-    tensor = torch.from_numpy(array).permute(2, 0, 1)[None]  # [1, 3, H, W]
-    scale = size / min(w, h)
-    rw, rh = max(size, round(w * scale)), max(size, round(h * scale))
-    tensor = torch.nn.functional.interpolate(tensor, size=(rh, rw), mode="bicubic", antialias=True,
-                                             align_corners=False)  # fmt: skip
-    left, top = (rw - size) // 2, (rh - size) // 2
-    return tensor[0, :, top : top + size, left : left + size].clamp(0, 1).contiguous()
+            f"input image {str(path)!r} is refused as a possible decompression bomb ({err}); downscale it first"
+        ) from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        raise _unreadable(path, err) from None
 
 
-def _to_rgb_float(img: Image.Image, background: tuple[float, float, float]) -> np.ndarray:
-    """Any PIL image -> float32 [H, W, 3] in [0, 1]: 8-bit, 16-bit and float modes at their own range, alpha
-    (or a palette's transparency) composited over ``background``."""
+def _unreadable(path: Path, err: Exception) -> UserError:
+    return UserError(f"cannot read {str(path)!r} as an image ({err}); give PNG/JPEG/... files")
+
+
+def _upright_size(img: Image.Image) -> tuple[int, int]:
+    """(width, height) of an opened image once its EXIF orientation is applied."""
+    w, h = img.size
+    return (h, w) if img.getexif().get(ORIENTATION, 1) in (5, 6, 7, 8) else (w, h)
+
+
+def _reduce(img: Image.Image, need: tuple[int, int]) -> tuple[Image.Image, bool, int]:
+    """Shrink a decoded image by the largest whole factor that keeps it at least ``need`` = (w, h) (a box
+    filter on its own integer pixels); returns it, whether its pixels were 16-bit, and the factor."""
+    sixteen_bit = img.mode.startswith("I;16")
+    factor = min(img.width // max(1, need[0]), img.height // max(1, need[1]))
+    if factor < 2:
+        return img, sixteen_bit, 1
+    if sixteen_bit:
+        img = img.convert("I")  # the box filter takes 32-bit integers, not 16-bit ones
+    elif img.mode in ("P", "PA"):
+        img = img.convert("RGBA")  # averaging palette indices would mix unrelated colours
+    elif img.mode == "1":
+        img = img.convert("L")
+    return img.reduce(factor), sixteen_bit, factor
+
+
+def _to_rgb_float(
+    img: Image.Image, background: tuple[float, float, float], sixteen_bit: bool = False
+) -> np.ndarray:
+    """Any PIL image -> float32 [H, W, 3] in [0, 1]: 8-bit, 16-bit (``sixteen_bit``: its pixels were, before a
+    conversion to 32-bit) and float modes at their own range, alpha (or a palette's transparency) composited
+    over ``background``."""
     if img.mode in ("I;16", "I;16B", "I;16L", "I;16N", "I"):
-        grey = np.asarray(img, dtype=np.float64)
-        peak = 65535.0 if img.mode.startswith("I;16") or grey.max() > 255 else 255.0  # PNG 16-bit opens as I
+        grey = np.asarray(img, dtype=np.float32)
+        sixteen_bit = sixteen_bit or img.mode.startswith("I;16") or grey.max() > 255  # PNG 16-bit opens as I
+        peak = 65535.0 if sixteen_bit else 255.0
         return np.repeat((grey / peak).clip(0, 1)[..., None], 3, axis=2).astype(np.float32)
     if img.mode == "F":
         return np.repeat(np.asarray(img, dtype=np.float32).clip(0, 1)[..., None], 3, axis=2)
@@ -226,6 +353,11 @@ class LoadedCheckpoint:
         return int(self.model.cfg.sh_degree)
 
     @property
+    def patch_size(self) -> int:
+        """Pixels per patch side of the model's encoder: image sides must be multiples of it."""
+        return int(self.model.cfg.encoder.patch_size)
+
+    @property
     def image_size(self) -> int:
         """The square side the model was trained at (the run's ``data.image_size``; 224 if unknown)."""
         return int((self.data or {}).get("image_size", 224))
@@ -317,19 +449,20 @@ def render_views(
     gaussians: Gaussians,
     extrinsics: Tensor,  # [F, 4, 4]
     intrinsics: Tensor,  # [F, 3, 3]
-    size: int,
+    height: int,
+    width: int,
     render_options: dict | None = None,
     chunk: int = 4,
     progress: tqdm | None = None,
 ) -> Tensor:
-    """Render F views of one scene in chunks of ``chunk`` -> colour [F, 3, size, size].
+    """Render F views of one scene in chunks of ``chunk`` -> colour [F, 3, height, width].
 
     render_options: keyword arguments of ``aesplat.render.render`` (backend, background, tile_size, ...).
     """
     frames = []
     for start in range(0, extrinsics.shape[0], chunk):
         ext, intr = extrinsics[None, start : start + chunk], intrinsics[None, start : start + chunk]
-        out = render(gaussians, ext, intr, size, size, **(render_options or {}))
+        out = render(gaussians, ext, intr, height, width, **(render_options or {}))
         frames.append(out.color[0])
         if progress is not None:
             progress.update(out.color.shape[1])
@@ -339,7 +472,7 @@ def render_views(
 def write_outputs(
     out_dir: Path,
     names: list[str],
-    images: Tensor,  # [V, 3, S, S]
+    images: Tensor,  # [V, 3, H, W]
     pred: Prediction,
     *,
     novel_frames: int,
@@ -347,9 +480,11 @@ def write_outputs(
     min_opacity: float,
     render_options: dict | None = None,
     progress: bool = True,
+    sources: list[dict] | None = None,
 ) -> dict:
-    """Render and write every output of ``aesplat predict`` under ``out_dir``; returns the cameras record."""
-    v, _, size, _ = images.shape
+    """Render and write every output of ``aesplat predict`` under ``out_dir``; returns the cameras record.
+    ``sources``: per view, what part of which photo the model saw (``InputImage.crop_record``)."""
+    v, _, height, width = images.shape
     steps = 2 * v + novel_frames + 2  # inputs+depth, re-renders, novel frames, PLY, cameras
     bar = tqdm(total=steps, desc="aesplat predict", unit="step", disable=not progress)
     for i in range(v):
@@ -358,11 +493,12 @@ def write_outputs(
         np.save(out_dir / "depth" / f"{i:02d}_{names[i]}.npy", pred.depth[i].cpu().numpy().astype(np.float32))
         Image.fromarray(colorize_depth(pred.depth[i])).save(out_dir / "depth" / f"{i:02d}_{names[i]}.png")
         bar.update(1)
-    renders = render_views(pred.gaussians, pred.extrinsics, pred.intrinsics, size, render_options, progress=bar)
+    renders = render_views(pred.gaussians, pred.extrinsics, pred.intrinsics, height, width, render_options,
+                           progress=bar)  # fmt: skip
     for i in range(v):
         save_image(renders[i], out_dir / "renders" / f"{i:02d}_{names[i]}.png")
     novel_ext, novel_int = interpolate_cameras(pred.extrinsics, pred.intrinsics, novel_frames)
-    novel = render_views(pred.gaussians, novel_ext, novel_int, size, render_options, progress=bar)
+    novel = render_views(pred.gaussians, novel_ext, novel_int, height, width, render_options, progress=bar)
     for f in range(novel_frames):
         save_image(novel[f], out_dir / "novel" / f"{f:03d}.png")
     frames = [Image.open(out_dir / "novel" / f"{f:03d}.png") for f in range(novel_frames)]
@@ -379,18 +515,33 @@ def write_outputs(
         "convention": "OpenCV axes (x right, y down, z forward); world = the first input view's camera frame; "
         "intrinsics_normalized has fx, cx divided by width and fy, cy by height",
         "views": [
-            {"image": names[i], **camera_record(pred.extrinsics[i].cpu(), pred.intrinsics[i].cpu(), size, size)}
+            {
+                "image": names[i],
+                **camera_record(pred.extrinsics[i].cpu(), pred.intrinsics[i].cpu(), height, width),
+                **({"source": sources[i]} if sources else {}),
+            }
             for i in range(v)
         ],
         "novel": [
-            camera_record(novel_ext[f].cpu(), novel_int[f].cpu(), size, size) for f in range(novel_frames)
+            camera_record(novel_ext[f].cpu(), novel_int[f].cpu(), height, width) for f in range(novel_frames)
         ],
         "gaussians": {"count": gaussians.num_gaussians, "ply_sh_degree": degree, "min_opacity": min_opacity},
+        # what the renders were made with, so that a viewer renders the same images from these files
+        "render": _render_record(render_options),
     }
     (out_dir / "cameras.json").write_text(compact_json(cameras))
     bar.update(1)
     bar.close()
     return cameras
+
+
+def _render_record(render_options: dict | None) -> dict:
+    """The background and renderer options of ``render_options`` as JSON (the backend is the machine's)."""
+    options = dict(render_options or {})
+    background = options.pop("background", None)
+    options.pop("backend", None)
+    background = [0.0, 0.0, 0.0] if background is None else torch.as_tensor(background).tolist()
+    return {"background": background, "options": options}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -414,10 +565,13 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=HelpFormatter,
     )
     parser.add_argument("images", nargs="+", metavar="IMAGE",
-                        help="images of one scene: as many as the checkpoint's context views (2 for the "
-                        "paper's models); any size down to half the model's input side; 16-bit images keep "
-                        "their range, transparent pixels are composited over the model's background colour, "
-                        "EXIF orientation is applied")  # fmt: skip
+                        help="2 or more images of one scene; the first is the reference frame, the others "
+                        "follow in the order given (a model with the paper's appearance head, "
+                        "view_aggregation concat, takes exactly the count it was built for, 2; a pool model "
+                        "any); photos keep their aspect ratio (that of the first; others are centre-cropped "
+                        "to it); any size down to half the model's input; 16-bit images keep their range, "
+                        "transparent pixels are composited over the model's background colour, EXIF "
+                        "orientation is applied")  # fmt: skip
     parser.add_argument("--ckpt", required=True, help="checkpoint written by `aesplat fit` (last.ckpt / best)")
     parser.add_argument("--out", required=True,
                         help="output folder: created whole (written beside it, then renamed into place); an "
@@ -428,14 +582,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="replace a non-empty --out folder as a whole (its old contents are removed)",
     )
     parser.add_argument("--size", type=int, default=None,
-                        help="square side the images are resized and centre-cropped to, a multiple of 14 "
-                        "(default: the image size the checkpoint was trained at)")  # fmt: skip
+                        help="the shorter side of the model's input, a multiple of the model's patch size; the "
+                        "longer side follows the photo's aspect ratio (default: the image size the checkpoint "
+                        "was trained at)")  # fmt: skip
+    parser.add_argument("--crop", choices=CROPS, default="none",
+                        help="none: the photo's own aspect ratio; square: a centre square, the shape the "
+                        "models are trained on (cameras.json says what was cropped)")  # fmt: skip
     parser.add_argument("--novel-frames", type=int, default=30, help="frames of the novel-view path")
     parser.add_argument("--ply-sh-degree", type=int, default=None,
                         help="SH bands written to the PLY (default: min(model degree, 3), what common 3DGS "
                         "viewers read)")  # fmt: skip
     parser.add_argument("--min-opacity", type=float, default=0.0,
                         help="leave Gaussians below this opacity out of the PLY")  # fmt: skip
+    parser.add_argument("--export", default=None, metavar="FORMATS",
+                        help="also write these exports, comma-separated: colmap (DIR/colmap/), "
+                        "nerfstudio (DIR/nerfstudio/), splat (DIR/gaussians.splat); see `aesplat export "
+                        "--help`")  # fmt: skip
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, ... (auto: cuda if available)")
     parser.add_argument("--backend", default="auto", help="renderer backend: auto, torch or gsplat")
     parser.add_argument("--threads", type=int, default=None,
@@ -503,6 +665,7 @@ def _predict(args: argparse.Namespace) -> int:
         raise UserError("--novel-frames must be at least 2")
     out_dir = Path(args.out)
     check_output_dir(out_dir, args.overwrite)
+    exports = parse_formats(args.export) if args.export is not None else []
     device = resolve_device(args.device)
     loaded = load_checkpoint(args.ckpt, device)
     if loaded.cameras != "predicted":
@@ -512,14 +675,18 @@ def _predict(args: argparse.Namespace) -> int:
             "images. Evaluate it with `aesplat test` or `aesplat bench`, or predict with a checkpoint trained "
             "with model.cameras=predicted."
         )
-    size = args.size or loaded.image_size
-    if size % PATCH != 0:
-        raise UserError(f"--size {size} is not a multiple of the patch size {PATCH}")
+    loaded.model.check_context_views(len(args.images))
+    size, patch = args.size or loaded.image_size, loaded.patch_size
+    if size % patch != 0:
+        raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
     model_degree = loaded.sh_degree
     if args.ply_sh_degree is not None and not 0 <= args.ply_sh_degree <= model_degree:
         raise UserError(f"--ply-sh-degree must be in 0..{model_degree} for this checkpoint")
     background = tuple(loaded.background.tolist())
-    images = torch.stack([load_image(p, size, background) for p in args.images]).to(device)
+    # Every view shares one model image shape: the first photo's (each other photo centre-cropped to it).
+    shape = model_image_shape(*photo_size(args.images[0]), size, patch, args.crop)
+    inputs = [load_image(p, size, background, patch=patch, shape=shape) for p in args.images]
+    images = torch.stack([i.image for i in inputs]).to(device)
     names = [Path(p).stem for p in args.images]
     try:
         pred = predict_scene(loaded.model, images)
@@ -531,7 +698,16 @@ def _predict(args: argparse.Namespace) -> int:
         write_outputs(
             staging, names, images, pred, novel_frames=args.novel_frames, ply_sh_degree=args.ply_sh_degree,
             min_opacity=args.min_opacity, render_options=options, progress=not args.no_progress,
+            sources=[i.crop_record() for i in inputs],
         )  # fmt: skip
-    print(f"aesplat predict: wrote {out_dir / 'gaussians.ply'} ({pred.gaussians.num_gaussians:,} Gaussians), "
-          f"cameras.json, inputs/, renders/, depth/, novel/ under {out_dir}")  # fmt: skip
+        export_prediction(staging, exports)
+    written = "".join(", " + EXPORTS[name].dest for name in exports)
+    print(f"aesplat predict: {len(inputs)} views of {shape[1]}x{shape[0]} pixels; wrote "
+          f"{out_dir / 'gaussians.ply'} ({pred.gaussians.num_gaussians:,} Gaussians), cameras.json, inputs/, "
+          f"renders/, depth/, novel/{written} under {out_dir}")  # fmt: skip
+    for name, i in zip(names, inputs):
+        if i.cropped:
+            left, top, right, bottom = (round(c) for c in i.crop)
+            print(f"aesplat predict: {name} ({i.source[0]}x{i.source[1]}) was centre-cropped to its pixels "
+                  f"x {left}..{right}, y {top}..{bottom} (cameras.json: views[].source)")  # fmt: skip
     return 0

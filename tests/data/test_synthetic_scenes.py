@@ -38,12 +38,16 @@ def test_diffuse_pixels_equal_texture_lookup_and_never_compute_specular(monkeypa
     assert torch.equal(flat.images.reshape(-1, 3), scene.materials.color_a[flat.surface.reshape(-1)])
 
 
-def test_declared_specular_is_computed(monkeypatch):
-    calls = []
-    original = synthetic_scenes.specular
-    monkeypatch.setattr(synthetic_scenes, "specular", lambda *a: calls.append(1) or original(*a))
-    render_scene(sample_scene(2, frames=3, height=8, width=8, effects=("specular",)), 8, 8)
-    assert calls
+def test_declared_specular_changes_the_image():
+    """Declaring `specular` adds the highlight to the image: light is only added, visibly, and it is the
+    specular term wherever the sum stays below 1 (where the image clips, less is added)."""
+    scene = sample_scene(2, frames=3, height=8, width=8, effects=("specular",), glossy_fraction=1.0)
+    shiny = render_scene(scene, 8, 8)
+    matte = render_scene(replace(scene, effects=frozenset()), 8, 8)
+    added = shiny.images - matte.images  # [F, H, W, 3]
+    assert (added >= 0).all() and added.amax() > 0.1 and (added.amax(-1) > 1e-3).float().mean() > 0.1
+    unclipped = (shiny.images < 1 - 1e-6).all(-1)
+    torch.testing.assert_close(added.amax(-1)[unclipped], shiny.specular[unclipped].float(), atol=1e-5, rtol=0)
 
 
 def test_specular_highlight_moves_between_views():

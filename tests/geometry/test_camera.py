@@ -75,3 +75,19 @@ def test_relative_to_first_makes_view0_identity_and_keeps_relative_motion():
     r = invert_pose(rel[:, 1]) @ rel[:, 2]
     torch.testing.assert_close(a, r, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(invert_pose(extr) @ extr, torch.eye(4).expand_as(extr), atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize(("aspect", "height", "width"), [(2.0, 20, 40), (0.5, 40, 20), (16 / 9, 90, 160)])
+def test_intrinsics_from_fov_have_square_pixels_and_the_fov_across_the_shorter_side(aspect, height, width):
+    fov = torch.tensor([0.9, 1.3])
+    k = intrinsics_from_fov(fov, aspect)
+    pixels = denormalize_intrinsics(k, height, width)
+    torch.testing.assert_close(pixels[:, 0, 0], pixels[:, 1, 1])  # square pixels: one focal length in pixels
+    short = min(height, width)  # the FOV spans the shorter side
+    torch.testing.assert_close(2 * torch.atan(0.5 * short / pixels[:, 0, 0]), fov)
+    torch.testing.assert_close(k[:, 0, 0] / k[:, 1, 1], torch.full((2,), height / width))
+    torch.testing.assert_close(k[:, :2, 2], torch.full((2, 2), 0.5))
+    square = intrinsics_from_fov(fov)
+    torch.testing.assert_close(square[:, 0, 0], square[:, 1, 1])
+    with pytest.raises(ValueError, match="aspect"):
+        intrinsics_from_fov(fov, 0.0)

@@ -9,8 +9,9 @@ from torch import nn
 from aesplat.geometry import C0, invert_pose, make_pose, num_sh_coeffs, quat_to_matrix, sh_basis, sh_dc_to_rgb
 from aesplat.model import (
     APPEARANCE_MODES,
-    DecoupledAppearance,
+    ConcatAppearance,
     ViewDependentHead,
+    build_appearance,
     gvsre_descriptor,
     i2dc,
     warped_color_map,
@@ -138,23 +139,30 @@ def test_view_dependent_head_needs_higher_orders():
         ViewDependentHead(8, 8, sh_degree=0)
 
 
+@pytest.mark.parametrize("aggregation", ["concat", "pool"])
 @pytest.mark.parametrize("mode", APPEARANCE_MODES)
-def test_appearance_mode_inputs_and_outputs(mode):
+def test_appearance_mode_inputs_and_outputs(mode, aggregation):
     feature_dim, gvsre_dim, views, degree = 12, 6, 3, 2
-    app = DecoupledAppearance(mode, degree, feature_dim, num_context_views=views, gvsre_dim=gvsre_dim, hidden=8)
+    app = build_appearance(aggregation, mode, degree, feature_dim, num_context_views=views, gvsre_dim=gvsre_dim,
+                           hidden=8)  # fmt: skip
     head = app.view_dependent_head
-    expected_in = {
-        "full": feature_dim + gvsre_dim + 4 * (views - 1),
-        "no_gvsre": feature_dim + 4 * (views - 1),
-        "no_wcm": feature_dim + gvsre_dim,
-    }
+    if aggregation == "concat":  # GVSRE of all cameras, colour + mask of each other view, in view order
+        expected_in = {"full": gvsre_dim + 4 * (views - 1), "no_gvsre": 4 * (views - 1), "no_wcm": gvsre_dim}
+        gvsre_in = 4 * views
+    else:  # one GVSRE embedding; one colour embedding + whether any other view sees the Gaussian
+        expected_in = {"full": 2 * gvsre_dim + 1, "no_gvsre": gvsre_dim + 1, "no_wcm": gvsre_dim}
+        gvsre_in = 5  # direction, log distance, own view
+        wcm = getattr(app, "wcm", None)
+        assert (wcm is not None) == (mode in ("full", "no_gvsre"))
+        if wcm is not None:  # warped colour, own colour (and with GVSRE the view's relation)
+            assert wcm.mlp[0].in_features == (10 if mode == "full" else 6)
     if mode in expected_in:
-        assert head.net[0].normalized_shape == (expected_in[mode],)
+        assert head.net[0].normalized_shape == (feature_dim + expected_in[mode],)
     else:
         assert head is None
     assert (app.gvsre is not None) == (mode in ("full", "no_wcm"))
     if app.gvsre is not None:
-        assert app.gvsre.mlp[0].in_features == 4 * views
+        assert app.gvsre.mlp[0].in_features == gvsre_in
     k = num_sh_coeffs(app.sh_degree)
     assert app.sh_degree == (0 if mode == "i2dc_only" else degree)
     assert app.gaussian_head_sh == {"baseline": k, "baseline_i2dc": k - 1}.get(mode, 0)
@@ -184,7 +192,7 @@ def test_baseline_sh_are_turned_from_each_camera_into_view_0s_frame(mode):
     """The Gaussian head's SH of view v describe colour against directions in camera v's frame; the Gaussians
     carry them in view 0's frame: the colour along a view-0-frame direction d is the head's at R_v^T d."""
     degree, p, dtype = 3, 6, torch.float64
-    app = DecoupledAppearance(mode, degree, feature_dim=4)
+    app = ConcatAppearance(mode, degree, feature_dim=4)
     k, s = num_sh_coeffs(degree), app.gaussian_head_sh
     extrinsics = torch.stack([torch.eye(4, dtype=dtype), _turned_camera()])[None]  # [1, 2, 4, 4]
     images = torch.rand(1, 2, 3, 2, 3, dtype=dtype)  # P = 6 pixels per view
@@ -209,7 +217,7 @@ def test_baseline_gaussians_of_a_turned_view_render_as_in_that_views_own_frame(m
     """Rendering view 1's Gaussians in view 0's frame equals rendering them, with the head's SH as predicted,
     in camera 1's frame from the same target camera: the turn goes the right way round."""
     degree, h, w, dtype = 3, 3, 4, torch.float64
-    app = DecoupledAppearance(mode, degree, feature_dim=4)
+    app = ConcatAppearance(mode, degree, feature_dim=4)
     k, s, p = num_sh_coeffs(degree), app.gaussian_head_sh, h * w
     pose1 = _turned_camera()
     extrinsics = torch.stack([torch.eye(4, dtype=dtype), pose1])[None]

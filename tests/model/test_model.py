@@ -1,8 +1,11 @@
 """The assembled model: output container, masked attention, cameras at initialisation, ablations, groups."""
 
+import math
+
 import pytest
 import torch
 
+from aesplat.errors import UserError
 from aesplat.geometry import DEFAULT_FOV, focal_to_fov, num_sh_coeffs, quat_to_matrix
 from aesplat.model import APPEARANCE_MODES, ModelOutput, build_model, i2dc
 from aesplat.model.model import _quat_multiply
@@ -102,6 +105,16 @@ def test_view0_is_identity_and_initial_cameras(model):
     assert out.extrinsics[..., :3, 3].abs().max() < 0.05
 
 
+def test_a_wide_input_gets_intrinsics_per_axis_with_square_pixels(model):
+    ctx, tgt = torch.rand(1, 2, 3, H, 2 * W), torch.rand(1, 1, 3, H, 2 * W)  # 2:1
+    with torch.no_grad():
+        out = model(ctx, tgt)
+    assert out.gaussians.num_gaussians == 2 * H * 2 * W and out.depth.shape == (1, 2, H, 2 * W)
+    k = out.intrinsics
+    torch.testing.assert_close(k[..., 0, 0], 0.5 * k[..., 1, 1])  # fx / fy = H / W: square pixels
+    torch.testing.assert_close(focal_to_fov(k[..., 1, 1]), torch.full((1, 3), DEFAULT_FOV), atol=1e-6, rtol=0)
+
+
 def test_dc_is_i2dc_of_the_context_pixels(model):
     ctx = _images(1, 2, 5)
     with torch.no_grad():
@@ -178,8 +191,23 @@ def test_build_model_options_reach_the_modules():
     assert m.transformer.patch_start == 4
     with torch.no_grad():
         out = m(_images(1, 2, 0))
-    assert out.depth.min() >= 0.5 and out.depth.max() <= 20.0
     assert out.gaussians.sh.shape[2] == 9
+
+
+def test_an_untrained_depth_head_sits_at_the_geometric_mean_of_either_range():
+    """depth = near·(far/near)^sigmoid(raw): the same weights put a pixel at the same place in log depth for any
+    range, and an untrained head's raw output is near 0, so its depth is near sqrt(near·far), not mid-range."""
+    places = []
+    for near, far in ((0.5, 20.0), (1.0, 100.0)):
+        torch.manual_seed(0)  # the same weights for both ranges
+        m = build_model("tiny", near=near, far=far, rope=False, num_register_tokens=3, sh_degree=2)
+        with torch.no_grad():
+            depth = m(_images(1, 2, 0)).depth
+        places.append((depth.log() - math.log(near)) / math.log(far / near))  # 0 at near, 1 at far
+        geometric_mean = math.sqrt(near * far)
+        assert (depth - geometric_mean).abs().max() < 0.1 * geometric_mean, (near, far)
+    torch.testing.assert_close(places[0], places[1])
+    assert ((places[0] - 0.5).abs() < 0.03).all()
 
 
 @pytest.mark.parametrize(
@@ -197,9 +225,10 @@ def test_forward_rejects_bad_inputs(model, ctx_shape, tgt_shape, match):
         model(torch.rand(ctx_shape), tgt)
 
 
-def test_view_dependent_head_needs_the_configured_number_of_views(model):
-    with pytest.raises(ValueError, match="num_context_views"):
+def test_concat_head_refuses_another_count_in_one_line_naming_pool(model):
+    with pytest.raises(UserError, match="model.net.view_aggregation: pool") as err:
         model(_images(1, 3, 0))
+    assert "\n" not in str(err.value) and "built for 2 context views and got 3" in str(err.value)
 
 
 def _all_finite(out: ModelOutput) -> bool:
@@ -209,11 +238,15 @@ def _all_finite(out: ModelOutput) -> bool:
 
 
 def _backward_is_finite(model, out: ModelOutput) -> bool:
-    model.zero_grad()
+    """Every parameter receives a gradient (this loss reaches them all), and every gradient is finite: a
+    parameter the backward never reached is a failure, not a pass."""
+    model.zero_grad(set_to_none=True)
     g = out.gaussians
     loss = g.sh.square().mean() + g.means.square().mean() + g.scales.sum() + out.extrinsics[:, 1:].sum()
     (loss + g.opacities.sum() + g.quats.sum()).backward()
-    return all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    missing = [name for name, p in model.named_parameters() if p.grad is None]
+    assert not missing, f"no gradient reached {missing[:5]}"
+    return all(torch.isfinite(p.grad).all() for p in model.parameters())
 
 
 @pytest.mark.parametrize("fill", [0.0, 1.0])

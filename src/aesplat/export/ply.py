@@ -1,4 +1,5 @@
-"""Gaussians to a PLY file in the reference 3DGS layout (Kerbl et al. 2023), readable by common 3DGS viewers.
+"""Gaussians to and from a PLY file in the reference 3DGS layout (Kerbl et al. 2023), readable by common 3DGS
+viewers.
 
 One vertex per Gaussian, binary little-endian float32 properties in this order:
 
@@ -13,6 +14,7 @@ One vertex per Gaussian, binary little-endian float32 properties in this order:
     rot_0 .. rot_3             quaternion (w, x, y, z), normalised here
 
 The SH basis and the +0.5 colour offset of this project are the reference's, so coefficients are copied as is.
+:func:`read_ply` reads any PLY of this layout (other properties, such as the normals, may be missing or extra).
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..geometry import num_sh_coeffs
+from ..errors import MissingFileError, UserError
+from ..geometry import MAX_SH_DEGREE, num_sh_coeffs
 from ..types import Gaussians
 
 # The reference 3DGS code and most viewers stop at SH degree 3 (45 f_rest properties).
@@ -83,3 +86,67 @@ def write_ply(path: str | Path, gaussians: Gaussians, index: int = 0, sh_degree:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(table.astype("<f4", copy=False).tobytes())
     return path
+
+
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
+
+
+def read_ply(path: str | Path) -> Gaussians:
+    """A binary little-endian 3DGS PLY -> Gaussians [1, N] (sigmoid of the opacity, exp of the scales).
+
+    Needs the vertex properties ``x y z f_dc_0..2 opacity scale_0..2 rot_0..3`` and ``f_rest_*`` for SH degree
+    0..4, as float or double. Anything else is refused with a :class:`UserError` naming what is wrong.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MissingFileError(f"{str(path)!r} does not exist (or is not a file)")
+    with open(path, "rb") as f:
+        data = f.read()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply\n") or end < 0:
+        raise UserError(f"{str(path)!r} is not a PLY file (no 'ply' ... 'end_header' header)")
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    body = data[end + len(b"end_header\n") :]
+    if "format binary_little_endian 1.0" not in header:
+        fmt = next((line for line in header if line.startswith("format")), "no format line")
+        raise UserError(f"{str(path)!r} is a PLY in '{fmt}'; a 3DGS PLY is binary_little_endian")
+    elements = [line.split() for line in header if line.startswith("element")]
+    if [e[1] for e in elements] != ["vertex"]:
+        kinds = [e[1] for e in elements]
+        raise UserError(f"{str(path)!r} holds elements {kinds}; a 3DGS PLY holds vertices only")
+    count = int(elements[0][2])
+    props = [line.split() for line in header if line.startswith("property")]
+    if any(p[1] not in _PLY_TYPES for p in props):
+        odd = next(" ".join(p[1:]) for p in props if p[1] not in _PLY_TYPES)
+        raise UserError(f"{str(path)!r} has property '{odd}'; a 3DGS PLY has float properties only")
+    dtype = np.dtype([(p[2], _PLY_TYPES[p[1]]) for p in props])
+    names = set(dtype.names or ())
+    rest = sum(name.startswith("f_rest_") for name in names)
+    degree = next((d for d in range(MAX_SH_DEGREE + 1) if 3 * (num_sh_coeffs(d) - 1) == rest), None)
+    needed = [n for n in ply_property_names(0) if n not in ("nx", "ny", "nz")]
+    missing = [n for n in needed if n not in names]
+    if missing or degree is None:
+        what = f"no {', '.join(missing[:4])}" if missing else f"{rest} f_rest properties, not 3 ((L+1)^2 - 1)"
+        raise UserError(
+            f"{str(path)!r} is not a 3DGS PLY of the reference layout ({what}); give the gaussians.ply of "
+            "`aesplat predict` or another 3DGS PLY"
+        )
+    if len(body) < count * dtype.itemsize:
+        raise UserError(f"{str(path)!r} is truncated: {count} vertices need {count * dtype.itemsize} bytes")
+    table = np.frombuffer(body, dtype=dtype, count=count)
+
+    def cols(*keys: str) -> torch.Tensor:  # [N, len(keys)] float32
+        return torch.from_numpy(np.stack([table[k].astype(np.float32) for k in keys], axis=-1))
+
+    k = num_sh_coeffs(degree)
+    dc = cols("f_dc_0", "f_dc_1", "f_dc_2")  # [N, 3]
+    f_rest = cols(*(f"f_rest_{i}" for i in range(3 * (k - 1)))) if k > 1 else torch.zeros(count, 0)
+    f_rest = f_rest.reshape(count, 3, k - 1)  # channel-major in the file
+    sh = torch.cat([dc[:, None], f_rest.transpose(1, 2)], dim=1)  # [N, K, 3]
+    return Gaussians(
+        means=cols("x", "y", "z")[None],
+        quats=cols("rot_0", "rot_1", "rot_2", "rot_3")[None],
+        scales=cols("scale_0", "scale_1", "scale_2").exp()[None],
+        opacities=torch.sigmoid(cols("opacity")[:, 0])[None],
+        sh=sh[None],
+    )

@@ -38,14 +38,19 @@ def focal_to_fov(focal: Tensor) -> Tensor:
     return 2.0 * torch.atan(0.5 / focal)
 
 
-def intrinsics_from_fov(fov: Tensor) -> Tensor:
-    """One field of view per camera [...] -> normalised intrinsics [..., 3, 3].
+def intrinsics_from_fov(fov: Tensor, aspect: float = 1.0) -> Tensor:
+    """One field of view per camera [...] -> normalised intrinsics [..., 3, 3] of an image of ``aspect`` =
+    width / height with square pixels and a centred principal point.
 
-    Equal horizontal and vertical FOV (so fx = fy in normalised units) and a centred principal point.
+    ``fov`` spans the image's shorter side; square pixels make the longer side's wider. A square image has
+    equal horizontal and vertical FOV (fx = fy in normalised units); a 2:1 image has fx = fy / 2.
     """
+    if not aspect > 0:
+        raise ValueError(f"aspect (width / height) must be > 0, got {aspect}")
     f = fov_to_focal(fov)
+    fx, fy = f * min(1.0, 1.0 / aspect), f * min(1.0, aspect)
     zero, one, half = torch.zeros_like(f), torch.ones_like(f), torch.full_like(f, 0.5)
-    rows = [f, zero, half, zero, f, half, zero, zero, one]
+    rows = [fx, zero, half, zero, fy, half, zero, zero, one]
     return torch.stack(rows, dim=-1).reshape(*f.shape, 3, 3)
 
 

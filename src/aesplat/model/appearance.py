@@ -1,16 +1,27 @@
 """Decoupled appearance (paper section 4): I2DC for the zeroth-order SH coefficient, and a view-dependent
 head fed with GVSRE and the warped colour map (WCM) for the higher-order coefficients.
 
-``i2dc``, ``gvsre_descriptor`` and ``warped_color_map`` are pure functions; the two small networks (the
-GVSRE MLP and the view-dependent head) are the model's ``appearance`` parameter group.
+``i2dc``, ``gvsre_descriptor`` and ``warped_color_map`` are pure functions; the small networks (the GVSRE MLP,
+pool's colour embedding and the view-dependent head) are the model's ``appearance`` parameter group.
+
+How the head takes in the other context views is the *view aggregation* (``VIEW_AGGREGATIONS``):
+
+concat  the paper's head: the GVSRE descriptor of every context camera and the WCM of every other context view,
+        concatenated in view order, so the head's width fixes the number of context views when it is built.
+pool    beyond the paper: each camera's GVSRE relation and each other view's warped colour are embedded by
+        MLPs shared by all views and averaged over the views (the colours over the views that see the
+        Gaussian only), so one set of weights serves 2..N views in any order of the non-reference views.
 """
 
 from __future__ import annotations
+
+from abc import ABC, abstractmethod
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from aesplat.errors import UserError
 from aesplat.geometry import num_sh_coeffs, project_points, rgb_to_sh_dc, safe_norm, sh_rotation_matrix
 
 APPEARANCE_MODES = ("full", "no_gvsre", "no_wcm", "i2dc_only", "baseline", "baseline_i2dc")
@@ -38,6 +49,21 @@ def gvsre_descriptor(means: Tensor, camera_centres: Tensor, min_distance: float 
     return desc.flatten(2)
 
 
+def other_views(v: int, device: torch.device | None = None) -> Tensor:
+    """[V, V-1]: row p lists the views other than p in increasing order (the WCM's order)."""
+    return torch.tensor([[q for q in range(v) if q != p] for p in range(v)], dtype=torch.long, device=device)
+
+
+def masked_mean(x: Tensor, mask: Tensor) -> Tensor:
+    """Mean of x [..., V, D] over the views where mask [..., V] is non-zero -> [..., D]; 0 where none is.
+
+    Views outside the mask take no part at all, not even a NaN or Inf they hold (a ``where`` before the sum).
+    """
+    keep = mask[..., None] > 0
+    total = torch.where(keep, x, torch.zeros_like(x)).sum(-2)
+    return total / keep.sum(-2).to(x.dtype).clamp_min(1.0)
+
+
 def warped_color_map(
     means: Tensor, images: Tensor, intrinsics: Tensor, extrinsics: Tensor
 ) -> tuple[Tensor, Tensor]:
@@ -63,22 +89,22 @@ def warped_color_map(
     )  # [B·Vq, 3, 1, Vp·P]  # fmt: skip
     samples = samples.reshape(b, v, 3, v, p).permute(0, 3, 4, 1, 2)  # [B, Vp, P, Vq, 3]
     mask = valid.reshape(b, v, v, p).permute(0, 2, 3, 1).to(images.dtype)  # [B, Vp, P, Vq]
-    others = torch.tensor([[q for q in range(v) if q != src] for src in range(v)], device=means.device)
-    idx = others[None, :, None, :].expand(b, v, p, v - 1)  # [B, Vp, P, V-1]
+    idx = other_views(v, means.device)[None, :, None, :].expand(b, v, p, v - 1)  # [B, Vp, P, V-1]
     mask = torch.gather(mask, 3, idx)
     colors = torch.gather(samples, 3, idx[..., None].expand(-1, -1, -1, -1, 3)) * mask[..., None]
     return colors, mask
 
 
-class GVSRE(nn.Module):
-    """The shallow MLP that turns the GVSRE descriptor [..., 4·C] into an embedding [..., dim]."""
+class ShallowMLP(nn.Module):
+    """Linear, GELU, linear over the last dimension: [..., in_dim] -> [..., dim]. The GVSRE MLP (concat: over
+    the descriptor of all context cameras at once; pool: per camera) and pool's warped-colour embedding."""
 
-    def __init__(self, num_context_views: int, dim: int) -> None:
+    def __init__(self, in_dim: int, dim: int) -> None:
         super().__init__()
-        self.mlp = nn.Sequential(nn.Linear(4 * num_context_views, dim), nn.GELU(), nn.Linear(dim, dim))
+        self.mlp = nn.Sequential(nn.Linear(in_dim, dim), nn.GELU(), nn.Linear(dim, dim))
 
-    def forward(self, descriptor: Tensor) -> Tensor:
-        return self.mlp(descriptor)
+    def forward(self, x: Tensor) -> Tensor:
+        return self.mlp(x)
 
 
 class ViewDependentHead(nn.Module):
@@ -105,7 +131,7 @@ class ViewDependentHead(nn.Module):
         return self.net(x).unflatten(-1, (self.num_coeffs, 3))
 
 
-class DecoupledAppearance(nn.Module):
+class DecoupledAppearance(nn.Module, ABC):
     """Assembles every Gaussian's SH coefficients according to the ablation ``mode``:
 
     ============== ============= =================================================
@@ -124,10 +150,14 @@ class DecoupledAppearance(nn.Module):
     c^{v->1}, Eq. 1). The view-dependent head's output is taken as it is, in view 0's frame: GVSRE feeds it
     the directions to every camera centre in that frame, so it can learn that frame's SH (``no_gvsre`` has
     no such frame cue; as in the paper, nothing turns its output either).
+
+    A subclass per view aggregation (``VIEW_AGGREGATIONS``) builds the GVSRE and WCM inputs of the head
+    (``_build_view_inputs``, ``view_inputs``); ``build_appearance`` picks it by name.
     """
 
     def __init__(self, mode: str, sh_degree: int, feature_dim: int, num_context_views: int = 2,
                  gvsre_dim: int = 32, hidden: int = 128) -> None:  # fmt: skip
+        """num_context_views: the count a ``concat`` head is built for (``pool`` takes any)."""
         super().__init__()
         if mode not in APPEARANCE_MODES:
             raise ValueError(f"unknown appearance mode {mode!r}; choose one of {', '.join(APPEARANCE_MODES)}")
@@ -139,11 +169,24 @@ class DecoupledAppearance(nn.Module):
         self.use_wcm = mode in ("full", "no_gvsre")
         k = num_sh_coeffs(self.sh_degree)
         self.gaussian_head_sh = {"baseline": k, "baseline_i2dc": k - 1}.get(mode, 0)
-        self.gvsre = GVSRE(num_context_views, gvsre_dim) if self.use_gvsre else None
-        wcm_dim = 4 * (num_context_views - 1)  # colour + mask per other context view
-        in_dim = feature_dim + (gvsre_dim if self.use_gvsre else 0) + (wcm_dim if self.use_wcm else 0)
         uses_head = mode in ("full", "no_gvsre", "no_wcm")
-        self.view_dependent_head = ViewDependentHead(in_dim, hidden, self.sh_degree) if uses_head else None
+        view_dim = self._build_view_inputs(num_context_views, gvsre_dim)
+        self.view_dependent_head = (
+            ViewDependentHead(feature_dim + view_dim, hidden, self.sh_degree) if uses_head else None
+        )
+
+    @abstractmethod
+    def _build_view_inputs(self, num_context_views: int, dim: int) -> int:
+        """Create the modules that embed GVSRE / WCM (as ``use_gvsre`` / ``use_wcm`` ask); return the width
+        they add to the view-dependent head's input."""
+
+    @abstractmethod
+    def view_inputs(self, images: Tensor, means: Tensor, intrinsics: Tensor, extrinsics: Tensor) -> Tensor:
+        """GVSRE and WCM inputs of the view-dependent head: images [B, V, 3, H, W], means [B, V, P, 3] (view-0
+        frame), intrinsics [B, V, 3, 3], extrinsics [B, V, 4, 4] of the context views -> [B, V·P, width]."""
+
+    def check_context_views(self, count: int) -> None:
+        """Refuse (UserError, one line) a number of context views this head cannot take."""
 
     def forward(
         self,
@@ -162,16 +205,90 @@ class DecoupledAppearance(nn.Module):
             turn = sh_rotation_matrix(extrinsics[:, :, :3, :3], self.sh_degree)[..., -s:, -s:]  # [B, V, S, S]
             parts.append(torch.einsum("bvij,bvpjc->bvpic", turn, head_sh).reshape(b, v * p, s, 3))
         if self.view_dependent_head is not None:
-            if v != self.num_context_views:
-                raise ValueError(
-                    f"the view-dependent head was built for {self.num_context_views} context views, got {v}; "
-                    "set num_context_views when building the model"
-                )
-            inputs = [features.reshape(b, v * p, -1)]
-            if self.gvsre is not None:
-                inputs.append(self.gvsre(gvsre_descriptor(means.reshape(b, v * p, 3), extrinsics[:, :, :3, 3])))
-            if self.use_wcm:
-                colors, mask = warped_color_map(means, images, intrinsics, extrinsics)
-                inputs += [colors.reshape(b, v * p, -1), mask.reshape(b, v * p, -1)]
+            self.check_context_views(v)
+            inputs = [features.reshape(b, v * p, -1), self.view_inputs(images, means, intrinsics, extrinsics)]
             parts.append(self.view_dependent_head(torch.cat(inputs, dim=-1)))
         return torch.cat(parts, dim=2)
+
+
+class ConcatAppearance(DecoupledAppearance):
+    """The paper's head: the GVSRE descriptor of all ``num_context_views`` cameras [4·C] through one MLP, and
+    the warped colours and validity masks of the C - 1 other views, concatenated in view order."""
+
+    def _build_view_inputs(self, num_context_views: int, dim: int) -> int:
+        self.gvsre = ShallowMLP(4 * num_context_views, dim) if self.use_gvsre else None
+        wcm_dim = 4 * (num_context_views - 1)  # colour + mask per other context view
+        return (dim if self.use_gvsre else 0) + (wcm_dim if self.use_wcm else 0)
+
+    def check_context_views(self, count: int) -> None:
+        if self.view_dependent_head is not None and count != self.num_context_views:
+            raise UserError(
+                f"the paper's appearance head (model.net.view_aggregation: concat) is built for "
+                f"{self.num_context_views} context views and got {count}; set model.net.view_aggregation: pool "
+                "for one head that takes any number of views"
+            )
+
+    def view_inputs(self, images: Tensor, means: Tensor, intrinsics: Tensor, extrinsics: Tensor) -> Tensor:
+        b, v, p, _ = means.shape
+        inputs = []
+        if self.gvsre is not None:
+            inputs.append(self.gvsre(gvsre_descriptor(means.reshape(b, v * p, 3), extrinsics[:, :, :3, 3])))
+        if self.use_wcm:
+            colors, mask = warped_color_map(means, images, intrinsics, extrinsics)
+            inputs += [colors.reshape(b, v * p, -1), mask.reshape(b, v * p, -1)]
+        return torch.cat(inputs, dim=-1)
+
+
+class PooledAppearance(DecoupledAppearance):
+    """One head for any number of context views (beyond the paper; docs/design.md):
+
+    - GVSRE: each camera's relation [direction (3), log distance, 1 for the Gaussian's own view] through one
+      MLP, averaged over all context cameras -> [dim];
+    - WCM: each other view's [warped colour (3), the Gaussian's own pixel colour (3), and with GVSRE that
+      view's relation (4)] through a second MLP, averaged over the views that see the Gaussian (validity
+      mask), plus whether any does -> [dim + 1]. A view that does not see the Gaussian takes no part.
+
+    Means are symmetric in their arguments, so permuting the non-reference context views permutes the
+    Gaussians and changes nothing else.
+    """
+
+    def _build_view_inputs(self, num_context_views: int, dim: int) -> int:
+        self.gvsre = ShallowMLP(5, dim) if self.use_gvsre else None
+        self.wcm = ShallowMLP(6 + (4 if self.use_gvsre else 0), dim) if self.use_wcm else None
+        return (dim if self.use_gvsre else 0) + (dim + 1 if self.use_wcm else 0)
+
+    def view_inputs(self, images: Tensor, means: Tensor, intrinsics: Tensor, extrinsics: Tensor) -> Tensor:
+        b, v, p, _ = means.shape
+        relation = gvsre_descriptor(means.reshape(b, v * p, 3), extrinsics[:, :, :3, 3])
+        relation = relation.reshape(b, v, p, v, 4)  # [B, Vp, P, Vc, 4]
+        inputs = []
+        if self.gvsre is not None:
+            own = torch.eye(v, dtype=means.dtype, device=means.device)[
+                None, :, None, :, None
+            ]  # [1, Vp, 1, Vc, 1]
+            own = own.expand(b, v, p, v, 1)
+            inputs.append(self.gvsre(torch.cat([relation, own], dim=-1)).mean(-2).reshape(b, v * p, -1))
+        if self.wcm is not None:
+            colors, mask = warped_color_map(means, images, intrinsics, extrinsics)  # [B, V, P, V-1, 3 | -]
+            pixel = images.permute(0, 1, 3, 4, 2).reshape(b, v, p, 1, 3).expand(-1, -1, -1, v - 1, -1)
+            seen_from = [colors, pixel]
+            if self.gvsre is not None:
+                idx = other_views(v, means.device)[None, :, None, :, None].expand(b, v, p, v - 1, 4)
+                seen_from.append(torch.gather(relation, 3, idx))  # [B, V, P, V-1, 4]: the other views' relation
+            pooled = masked_mean(self.wcm(torch.cat(seen_from, dim=-1)), mask)  # [B, V, P, dim]
+            seen = mask.amax(-1, keepdim=True)  # [B, V, P, 1]: 1 if any other view sees the Gaussian
+            inputs += [pooled.reshape(b, v * p, -1), seen.reshape(b, v * p, 1)]
+        return torch.cat(inputs, dim=-1)
+
+
+VIEW_AGGREGATIONS: dict[str, type[DecoupledAppearance]] = {"concat": ConcatAppearance, "pool": PooledAppearance}
+
+
+def build_appearance(aggregation: str, mode: str, sh_degree: int, feature_dim: int, num_context_views: int = 2,
+                     gvsre_dim: int = 32, hidden: int = 128) -> DecoupledAppearance:  # fmt: skip
+    """The appearance module of ``aggregation`` (a key of ``VIEW_AGGREGATIONS``); arguments as
+    :class:`DecoupledAppearance`."""
+    if aggregation not in VIEW_AGGREGATIONS:
+        choices = ", ".join(VIEW_AGGREGATIONS)
+        raise ValueError(f"unknown view aggregation {aggregation!r}; choose one of {choices}")
+    return VIEW_AGGREGATIONS[aggregation](mode, sh_degree, feature_dim, num_context_views, gvsre_dim, hidden)

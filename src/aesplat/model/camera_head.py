@@ -83,7 +83,8 @@ class CameraHead(nn.Module):
 
     - a 6D rotation (Gram-Schmidt), output bias initialised to the identity;
     - a 4D homogeneous translation t = xyz / (softplus(w) + eps), initialised near zero;
-    - one field of view, bounded to [10°, 160°] by a sigmoid and initialised to exactly 2·atan(0.5).
+    - one field of view across the image's shorter side (square pixels), bounded to [10°, 160°] by a sigmoid
+      and initialised to exactly 2·atan(0.5).
 
     Poses are camera-to-world in view 0's frame; view 0 is set to the identity exactly (its own camera
     token still tells the transformer which frame is canonical). With ``correlation`` the vector of
@@ -113,9 +114,12 @@ class CameraHead(nn.Module):
             frac = (DEFAULT_FOV - FOV_MIN) / (FOV_MAX - FOV_MIN)
             self.fov.bias.fill_(math.log(frac / (1.0 - frac)))
 
-    def forward(self, camera_tokens: Tensor, images: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def forward(
+        self, camera_tokens: Tensor, images: Tensor | None = None, aspect: float = 1.0
+    ) -> tuple[Tensor, Tensor]:
         """camera_tokens [B, V, C] (images [B, V, 3, H, W] with ``correlation``) -> extrinsics [B, V, 4, 4]
-        (camera-to-view-0), intrinsics [B, V, 3, 3]."""
+        (camera-to-view-0), intrinsics [B, V, 3, 3] of images of ``aspect`` = width / height (the FOV spans
+        the shorter side; pixels are square)."""
         h = self.trunk[:2](camera_tokens)  # layer norm, first linear layer
         if self.correlation is not None:
             if images is None:
@@ -128,4 +132,4 @@ class CameraHead(nn.Module):
         eye = torch.eye(4, dtype=pose.dtype, device=pose.device).expand_as(pose[:, :1])
         extrinsics = torch.cat([eye, pose[:, 1:]], dim=1)
         fov = FOV_MIN + (FOV_MAX - FOV_MIN) * torch.sigmoid(self.fov(h)[..., 0])  # [B, V]
-        return extrinsics, intrinsics_from_fov(fov)
+        return extrinsics, intrinsics_from_fov(fov, aspect)

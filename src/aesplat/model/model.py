@@ -10,10 +10,11 @@ from typing import Any, Literal, get_args
 import torch
 from torch import Tensor, nn
 
+from aesplat.errors import UserError
 from aesplat.geometry import matrix_to_quat, relative_to_first, unproject_depth
 from aesplat.types import BatchedExample, Gaussians
 
-from .appearance import APPEARANCE_MODES, DecoupledAppearance
+from .appearance import APPEARANCE_MODES, VIEW_AGGREGATIONS, build_appearance
 from .camera_head import CameraHead
 from .dpt import DepthHead
 from .encoder import EncoderConfig, PatchEncoder
@@ -46,7 +47,10 @@ class ModelConfig:
     camera_correlation: bool = False  # the camera head also sees a view-0 cost volume (ViewCorrelation)
     appearance: str = "full"
     sh_degree: int = 4
-    num_context_views: int = 2  # GVSRE / WCM widths depend on it
+    # How the view-dependent head takes in the other context views: concat (the paper's; its width fixes the
+    # number of context views to num_context_views) or pool (any number); see appearance.py.
+    view_aggregation: str = "concat"
+    num_context_views: int = 2  # the count a concat head is built for (pool takes any)
     gvsre_dim: int = 32
     appearance_hidden: int = 128
     # The depth head's range (z-depth, scene units): the one place a run's depth range lives (model.net.near /
@@ -166,9 +170,9 @@ class AESplatModel(nn.Module):
         self.depth_head = DepthHead(
             token_dim, cfg.head_features, cfg.head_channels, cfg.near, cfg.far, cfg.head_precision
         )
-        self.appearance = DecoupledAppearance(
-            cfg.appearance, cfg.sh_degree, cfg.gaussian_feature_dim, cfg.num_context_views, cfg.gvsre_dim,
-            cfg.appearance_hidden,
+        self.appearance = build_appearance(
+            cfg.view_aggregation, cfg.appearance, cfg.sh_degree, cfg.gaussian_feature_dim,
+            cfg.num_context_views, cfg.gvsre_dim, cfg.appearance_hidden,
         )  # fmt: skip
         self.gaussian_head = GaussianHead(
             token_dim, cfg.head_features, cfg.head_channels, cfg.gaussian_feature_dim,
@@ -183,6 +187,17 @@ class AESplatModel(nn.Module):
     def sh_degree(self) -> int:
         """SH degree of the predicted Gaussians (0 in ``i2dc_only``)."""
         return self.appearance.sh_degree
+
+    @property
+    def patch_size(self) -> int:
+        """Pixels per patch side: image sides must be multiples of it."""
+        return self.cfg.encoder.patch_size
+
+    def check_context_views(self, count: int) -> None:
+        """Refuse, with one line (UserError), a number of context views this network cannot take."""
+        if count < 2:
+            raise UserError(f"the model needs at least 2 context views, got {count}")
+        self.appearance.check_context_views(count)
 
     @property
     def pretrained_backbone(self) -> bool:
@@ -238,9 +253,8 @@ class AESplatModel(nn.Module):
         if not context.is_floating_point():
             raise TypeError(f"context_images must be float in [0, 1], got {context.dtype}; divide uint8 by 255")
         b, vc, _, h, w = context.shape
-        if vc < 2:
-            raise ValueError(f"the model needs at least 2 context views, got {vc}")
-        p = self.cfg.encoder.patch_size
+        self.check_context_views(vc)
+        p = self.patch_size
         if h % p or w % p:
             raise ValueError(f"image height and width must be multiples of the patch size {p}, got {h}x{w}")
         if target is not None:
@@ -277,9 +291,9 @@ class AESplatModel(nn.Module):
             context_images = context_images.float()
             predicted = None
             if extrinsics is None:
-                extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0], images)
+                extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0], images, w / h)
             elif target_images is not None:  # given cameras render; the head's are only supervised
-                predicted = self.camera_head(layers[-1][:, :, 0], images)
+                predicted = self.camera_head(layers[-1][:, :, 0], images, w / h)
             extrinsics, intrinsics = extrinsics.float(), intrinsics.float()
             start = self.transformer.patch_start
             context_tokens = [x[:, :vc, start:].flatten(0, 1) for x in layers]  # 4 x [B·Vc, P, 2·dim]
@@ -342,9 +356,9 @@ def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4
     """Build an AESplat model from a size preset (``tiny``, ``base``, ``large``) and overrides.
 
     appearance: one of full, no_gvsre, no_wcm, i2dc_only, baseline, baseline_i2dc (the paper's ablation rows).
-    kwargs: any :class:`ModelConfig` field (``near``, ``far``, ``weights``, ``num_context_views``, ...) and
-    ``rope``, ``num_register_tokens``, ``qk_norm`` (geometry transformer), ``encoder_registers``,
-    ``patch_size`` (encoder; 14 is DINOv2's and the only one pretrained weights fit).
+    kwargs: any :class:`ModelConfig` field (``near``, ``far``, ``weights``, ``view_aggregation``,
+    ``num_context_views``, ...) and ``rope``, ``num_register_tokens``, ``qk_norm`` (geometry transformer),
+    ``encoder_registers``, ``patch_size`` (encoder; 14 is DINOv2's and the only one pretrained weights fit).
     """
     if size not in SIZES:
         raise ValueError(f"unknown model size {size!r}; choose one of {', '.join(SIZES)}")
@@ -382,6 +396,8 @@ class NetConfig:
 
     size: str = "tiny"
     appearance: str = "full"  # full | no_gvsre | no_wcm | i2dc_only | baseline | baseline_i2dc
+    # concat: the paper's appearance head, built for options.num_context_views (2); pool: any number of views
+    view_aggregation: str = "concat"
     sh_degree: int = 4
     near: float = ModelConfig.near  # the depth head's range: depth = near·(far/near)^sigmoid(·)
     far: float = ModelConfig.far
@@ -393,10 +409,16 @@ class NetConfig:
         if self.compile not in COMPILE_MODES:
             choices = ", ".join(COMPILE_MODES)
             raise ValueError(f"unknown model.net.compile {self.compile!r}; choose one of {choices}")
+        if self.view_aggregation not in VIEW_AGGREGATIONS:
+            choices = ", ".join(VIEW_AGGREGATIONS)
+            raise ValueError(
+                f"unknown model.net.view_aggregation {self.view_aggregation!r}; choose one of {choices}"
+            )
 
     def build(self) -> AESplatModel:
         model = build_model(size=self.size, appearance=self.appearance, sh_degree=self.sh_degree,
-                            near=self.near, far=self.far, weights=self.weights, **self.options)  # fmt: skip
+                            view_aggregation=self.view_aggregation, near=self.near, far=self.far,
+                            weights=self.weights, **self.options)  # fmt: skip
         if self.compile == "blocks":
             model.compile_blocks()
         return model

@@ -273,14 +273,26 @@ def _load_aesplat_state(
 ) -> WeightsReport:
     """Every tensor of the checkpoint's model into ``model`` (an AESplatModel of the same architecture).
     The module's other entries (metrics) are ignored; a shape mismatch is an error naming the checkpoint's
-    network settings (``trained_with``: its ``hyper_parameters["net"]``)."""
+    network settings (``trained_with``: its ``hyper_parameters["net"]``). An appearance head of another view
+    aggregation than ``model``'s is left out with a warning (a ``pool`` run from a ``concat`` warm start)."""
     report = WeightsReport(path=str(path), format="aesplat")
     report.ignored = sorted(k for k in state if not k.startswith(AESPLAT_PREFIX))
     own = {k[len(AESPLAT_PREFIX) :]: v for k, v in state.items() if k.startswith(AESPLAT_PREFIX)}
+    saved_kind = (trained_with or {}).get("view_aggregation", "concat")  # older checkpoints: the paper's head
+    kind = getattr(getattr(model, "cfg", None), "view_aggregation", saved_kind)
+    if saved_kind != kind:  # another head's layout: the rest of the network loads, this head starts afresh
+        head = sorted(k for k in own if k.startswith("appearance."))
+        report.ignored += [AESPLAT_PREFIX + k for k in head]
+        own = {k: v for k, v in own.items() if not k.startswith("appearance.")}
+        warnings.warn(
+            f"weights {path}: its appearance head is view_aggregation {saved_kind}, this model's {kind}; "
+            f"the {len(head)} appearance tensors are not loaded (that head starts from its initialisation)",
+            stacklevel=3,
+        )
     try:
         _load_matching(model, own, "", report)
     except ValueError as err:
-        keys = ("size", "appearance", "sh_degree", "options")
+        keys = ("size", "appearance", "view_aggregation", "sh_degree", "options")
         settings = {k: trained_with.get(k) for k in keys} if trained_with else {}
         raise UserError(f"{err}. The checkpoint was trained with model.net {settings}") from None
     _warn(report)

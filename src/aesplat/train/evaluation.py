@@ -25,7 +25,7 @@ from .metrics import OVERLAP_BUCKETS
 # the share of highlight pixels. Empty for data without highlight masks.
 METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "psnr_highlight", "psnr_rest",
            "highlight_fraction")  # fmt: skip
-CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", *METRICS)
+CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", "context_views", *METRICS)
 
 
 @dataclass
@@ -48,7 +48,9 @@ def _mean(values: list[float]) -> float | None:
 
 
 def summarize(rows: list[dict], lpips_unavailable: str | None = None) -> dict:
-    """Mean of every metric over all scenes and per overlap bucket (small / medium / large / unknown).
+    """Mean of every metric over all scenes, per overlap bucket (small / medium / large / unknown) and per
+    number of context views (``context_views``: {"2": {...}, "3": {...}}; rows without the count are left out
+    of it).
 
     A metric is averaged over the scenes where it is finite (a scene without highlight pixels has no
     ``psnr_highlight``); ``counts`` says over how many. A metric nobody could compute is reported as null;
@@ -65,6 +67,12 @@ def summarize(rows: list[dict], lpips_unavailable: str | None = None) -> dict:
                 "num_scenes": len(members),
                 **{m: _mean([r.get(m) for r in members]) for m in METRICS},
             }
+    counts = sorted({r["context_views"] for r in rows if r.get("context_views") is not None})
+    summary["context_views"] = {
+        str(count): {"num_scenes": len(members), **{m: _mean([r.get(m) for r in members]) for m in METRICS}}
+        for count in counts
+        for members in [[r for r in rows if r.get("context_views") == count]]
+    }
     edges = {k: [lo, hi if math.isfinite(hi) else None] for k, (lo, hi) in OVERLAP_BUCKETS.items()}
     summary["bucket_edges"] = edges
     if lpips_unavailable:

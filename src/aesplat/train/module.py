@@ -122,6 +122,9 @@ class AESplatModule(LightningModule):
             datamodule.set_global_step(self.global_step)
 
     def setup(self, stage: str) -> None:
+        # Before any step: a count of context views the network cannot take is one line, not a failed step.
+        for count in context_view_counts(getattr(self.trainer, "datamodule", None)):
+            self.model.check_context_views(count)
         if stage in ("test", "validate") and self.trainer.world_size > 1:
             # Ranks that torchrun started each named the evaluation folder from their own clock: all write
             # into rank 0's, so one folder holds every rank's renders.
@@ -183,6 +186,7 @@ class AESplatModule(LightningModule):
             scalars.update({"train/psnr": psnr_, "train/grad_norm": grad_norm})
             host = self._read_back(step, scalars)  # stops the run when skipping is no longer rare
             host["train/skipped_steps"] = torch.tensor(float(self.skipped_steps))
+            host["train/context_views"] = torch.tensor(float(batch.context.num_views))  # may vary by batch
             for name, lr in current_learning_rates(optimizer.optimizer).items():
                 host[f"lr/{name}"] = torch.tensor(lr)
             b = batch.batch_size
@@ -273,6 +277,7 @@ class AESplatModule(LightningModule):
                 "overlap": overlap,
                 "bucket": overlap_bucket(overlap),
                 "gap": None if batch.gap is None else int(batch.gap[i]),
+                "context_views": batch.context.num_views,
                 **{k: float(v[i]) for k, v in metrics.items()},
             }
             self._test_rows.append(row)
@@ -364,6 +369,17 @@ def _as(cls, value):
     if isinstance(value, dict):
         return cls(**value)
     raise TypeError(f"expected {cls.__name__} or a dict, got {type(value).__name__}")
+
+
+def context_view_counts(datamodule: object) -> list[int]:
+    """The numbers of context views a data module's batches bring: its ``num_context_views``, a number or an
+    inclusive range ``[low, high]``; none when it has no such setting."""
+    counts = getattr(datamodule, "num_context_views", None)
+    if isinstance(counts, int):
+        return [counts]
+    if isinstance(counts, (list, tuple)) and len(counts) == 2 and all(isinstance(c, int) for c in counts):
+        return list(range(counts[0], counts[1] + 1))
+    return []
 
 
 def _safe(name: str) -> str:

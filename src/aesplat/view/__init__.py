@@ -1,0 +1,23 @@
+"""`aesplat view`: a prediction in the browser (viser; the optional ``viewer`` extra).
+
+    aesplat view PREDICT_DIR | FILE.ply | --ckpt CKPT IMAGE IMAGE [...] [--host 127.0.0.1] [--port 8080]
+
+See docs/view.md. The viewer listens on 127.0.0.1 unless ``--host`` says otherwise, prints its URL, and runs
+until Ctrl-C. It writes nothing: screenshots go to the browser as downloads.
+"""
+
+from .camera import Viewpoint, viewpoint_of
+from .command import main
+from .exact import render_viewpoint
+from .scene import ViewCamera, ViewScene, scene_from_checkpoint, scene_from_path
+
+__all__ = [
+    "ViewCamera",
+    "ViewScene",
+    "Viewpoint",
+    "main",
+    "render_viewpoint",
+    "scene_from_checkpoint",
+    "scene_from_path",
+    "viewpoint_of",
+]

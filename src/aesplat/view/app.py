@@ -1,0 +1,371 @@
+"""The browser viewer: a viser server showing one :class:`ViewScene` to every client that connects.
+
+Each client gets its own copy of the scene and controls (viser's per-client scene and GUI), so one client's
+render mode or camera never changes another's:
+
+- the Gaussians as client-side splats (base colour, sorted and drawn by the browser: fast while moving);
+- the input cameras as frustums textured with their images (click one to look through it) and the
+  novel-view path as a curve with a small frustum per frame;
+- controls: render mode, SH degree, opacity threshold, showing the cameras, jumping to any camera, playing the
+  path, saving a screenshot (sent to the browser as a PNG download; nothing is written on the server).
+
+In the exact mode the splats are shown while the camera moves; once it rests for ``REST_S`` seconds the server
+renders the viewpoint with this project's rasterizer (view-dependent SH up to the chosen degree) and shows that
+image in place of the splats until the camera moves again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import socket
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from PIL import Image
+
+from ..errors import UserError
+from ..geometry import covariance_from_scale_rot, sh_dc_to_rgb
+from .camera import Viewpoint, viewpoint_of
+from .exact import render_viewpoint, visible_gaussians
+from .scene import ViewScene
+
+MODES = ("fast", "exact")
+REST_S = 0.25  # the camera has rested this long: render the exact image
+PATH_FPS = 10.0
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Refuse a port another program listens on, before the server starts (viser would quietly take the next
+    free port, and the printed URL would not be the one asked for)."""
+    if port == 0:
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError as err:
+            raise UserError(f"cannot listen on {host}:{port} ({err.strerror}); give another --port") from None
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def to_uint8(color: torch.Tensor) -> np.ndarray:
+    """[3, H, W] in [0, 1] -> uint8 [H, W, 3]."""
+    return (color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+
+
+@dataclass(frozen=True)
+class ViewerOptions:
+    """How the viewer starts: host and port it listens on (0: any free port), the render mode, whether the
+    cameras show, the height of exact renders (their width follows the browser's aspect), and where and how
+    the exact renders run."""
+
+    host: str = "127.0.0.1"
+    port: int = 8080
+    mode: str = "fast"
+    show_cameras: bool = True
+    exact_height: int = 480
+    device: str = "cpu"
+    backend: str = "auto"
+
+
+class Viewer:
+    """A running viewer: ``url``, ``clients`` (connected client sessions by id) and ``stop()``."""
+
+    def __init__(self, scene: ViewScene, options: ViewerOptions) -> None:
+        import viser  # the optional `viewer` extra; aesplat.view.main turns its absence into one line
+
+        if options.mode not in MODES:
+            raise UserError(f"unknown render mode {options.mode!r}; choose from {', '.join(MODES)}")
+        check_port_free(options.host, options.port)
+        self.scene = scene
+        self.options = options
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: the command prints the URL
+            self.server = viser.ViserServer(host=options.host, port=options.port, label="aesplat view",
+                                            verbose=False)  # fmt: skip
+        if options.port not in (0, self.server.get_port()):  # taken between the check and the start
+            self.server.stop()
+            raise UserError(f"cannot listen on {options.host}:{options.port} (in use); give another --port")
+        self.server.scene.set_up_direction("-y")  # the world is view 0's camera frame: y points down
+        self.clients: dict[int, ClientSession] = {}
+        self._lock = threading.Lock()
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+
+    @property
+    def url(self) -> str:
+        host = self.options.host
+        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}"
+
+    def _connect(self, client) -> None:
+        session = ClientSession(self, client)
+        with self._lock:
+            self.clients[client.client_id] = session
+
+    def _disconnect(self, client) -> None:
+        with self._lock:
+            session = self.clients.pop(client.client_id, None)
+        if session is not None:
+            session.close()
+
+    def stop(self) -> None:
+        """Close every client session and stop the server (its threads end; the port is released)."""
+        with self._lock:
+            sessions = list(self.clients.values())
+            self.clients.clear()
+        for session in sessions:
+            session.close()
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's "server stopped"
+            self.server.stop()
+
+
+class ClientSession:
+    """One browser tab: its scene nodes, controls, and the thread that renders its exact images."""
+
+    def __init__(self, viewer: Viewer, client) -> None:
+        self.viewer, self.client, self.scene = viewer, client, viewer.scene
+        self.mode = viewer.options.mode
+        self.sh_degree = self.scene.sh_degree
+        self.min_opacity = 0.0
+        self.showing_exact = False
+        self.last_exact: np.ndarray | None = None  # the exact image shown now (uint8 [H, W, 3])
+        self.exact_renders = 0  # exact images shown so far
+        self._moved = threading.Event()
+        self._last_move = 0.0
+        self._closed = threading.Event()
+        self._playing = threading.Event()
+        self.views = [viewpoint_of(c.extrinsics, c.intrinsics, c.width, c.height) for c in self.scene.cameras]
+        self.path = [
+            viewpoint_of(e, k, 1, 1) for e, k in zip(self.scene.path_extrinsics, self.scene.path_intrinsics)
+        ]
+        self._add_scene()
+        self._add_controls()
+        self._set_initial_camera()
+        client.camera.on_update(self._camera_moved)
+        self._worker = threading.Thread(target=self._render_loop, daemon=True, name=f"exact-{client.client_id}")
+        self._worker.start()
+
+    # ------------------------------------------------------------------------------------------- scene
+
+    def _extent(self) -> float:
+        """A length for sizing frustums: the spread of the Gaussian centres (robust to outliers)."""
+        means = self.scene.gaussians.means[0]
+        lo, hi = torch.quantile(means, torch.tensor([0.05, 0.95]), dim=0)
+        return max(float((hi - lo).norm()), 1e-3)
+
+    def _add_splats(self) -> None:
+        g = visible_gaussians(self.scene.gaussians, self.min_opacity)
+        rgb = sh_dc_to_rgb(g.sh[0, :, 0]).clamp(0, 1)  # base colour: what the fast mode shows
+        cov = covariance_from_scale_rot(g.scales[0], g.quats[0])  # [N, 3, 3]
+        self.splats = self.client.scene.add_gaussian_splats(
+            "/gaussians", centers=g.means[0].numpy(), covariances=cov.numpy(), rgbs=rgb.numpy(),
+            opacities=g.opacities[0, :, None].numpy(), visible=not self.showing_exact,
+        )  # fmt: skip
+
+    def _add_scene(self) -> None:
+        self._add_splats()
+        scale = 0.1 * self._extent()
+        self.frustums = []
+        for i, (cam, view) in enumerate(zip(self.scene.cameras, self.views)):
+            frustum = self.client.scene.add_camera_frustum(
+                f"/cameras/{i:02d}_{cam.name}", fov=view.fov, aspect=view.aspect, scale=scale, image=cam.image,
+                wxyz=view.wxyz, position=view.position, color=(230, 120, 20), thickness=2.0,
+                thickness_units="screen", visible=self.viewer.options.show_cameras,
+            )  # fmt: skip
+            frustum.on_click(lambda _event, view=view: self.go_to(view))
+            self.frustums.append(frustum)
+        if self.path:
+            positions = np.array([v.position for v in self.path])
+            self.frustums.append(self.client.scene.add_spline_catmull_rom(
+                "/path/curve", points=positions, color=(40, 160, 240), thickness=2.0, thickness_units="screen",
+                visible=self.viewer.options.show_cameras,
+            ))  # fmt: skip
+            for f, view in enumerate(self.path):
+                self.frustums.append(self.client.scene.add_camera_frustum(
+                    f"/path/{f:03d}", fov=view.fov, aspect=view.aspect, scale=0.4 * scale, wxyz=view.wxyz,
+                    position=view.position, color=(40, 160, 240), thickness=1.5, thickness_units="screen",
+                    visible=self.viewer.options.show_cameras,
+                ))  # fmt: skip
+
+    def _set_initial_camera(self) -> None:
+        """Behind input view 0 (its frustum and the scene in sight), else in front of the Gaussians."""
+        means = self.scene.gaussians.means[0].double()
+        camera = self.client.camera
+        if self.views:
+            view = self.views[0]
+            c2w = view.extrinsics().double()
+            forward, centre = c2w[:3, 2], c2w[:3, 3]
+            depth = float(((means - centre) @ forward).median().clamp_min(1e-3))
+            camera.fov = view.fov
+            camera.up_direction = (-c2w[:3, 1]).numpy()
+            camera.position = (centre - 0.5 * depth * forward).numpy()
+            camera.look_at = (centre + depth * forward).numpy()
+        else:
+            target = means.median(dim=0).values
+            camera.up_direction = (0.0, -1.0, 0.0)
+            camera.position = (
+                target - torch.tensor([0.0, 0.0, 1.5 * self._extent()], dtype=torch.float64)
+            ).numpy()
+            camera.look_at = target.numpy()
+
+    # ------------------------------------------------------------------------------------------- controls
+
+    def _add_controls(self) -> None:
+        gui = self.client.gui
+        g = self.scene.gaussians
+        gui.add_markdown(f"**{self.scene.source}**  \n{g.num_gaussians:,} Gaussians, SH degree {g.sh_degree}, "
+                         f"{len(self.scene.cameras)} cameras")  # fmt: skip
+        with gui.add_folder("Render"):
+            mode = gui.add_dropdown("Mode", MODES, initial_value=self.mode,
+                                    hint="fast: splats drawn by the browser, base colour; exact: this "
+                                    "project's rasterizer on the server, view-dependent SH")  # fmt: skip
+            degrees = [str(d) for d in range(self.scene.sh_degree + 1)]
+            degree = gui.add_dropdown("SH degree", degrees, initial_value=degrees[-1],
+                                      hint="bands the exact mode evaluates (fast: degree 0)")  # fmt: skip
+            opacity = gui.add_slider("Min opacity", min=0.0, max=1.0, step=0.01, initial_value=0.0,
+                                     hint="hide Gaussians less opaque than this")  # fmt: skip
+            screenshot = gui.add_button("Save screenshot", hint="the current view as a PNG download")
+        with gui.add_folder("Cameras"):
+            show = gui.add_checkbox("Show cameras", initial_value=self.viewer.options.show_cameras)
+            names = [f"{i:02d} {c.name}" for i, c in enumerate(self.scene.cameras)]
+            names += [f"path {f:03d}" for f in range(len(self.path))]
+            if names:
+                target = gui.add_dropdown("Camera", names, initial_value=names[0])
+                go = gui.add_button("Go to camera")
+                go.on_click(lambda _: self.go_to((self.views + self.path)[names.index(target.value)]))
+            if self.path:
+                play = gui.add_button("Play path")
+                play.on_click(lambda _: self.play_path())
+
+        @mode.on_update
+        def _(_) -> None:
+            self.mode = mode.value
+            self._show_splats()
+            self._request_exact()
+
+        @degree.on_update
+        def _(_) -> None:
+            self.sh_degree = int(degree.value)
+            self._request_exact()
+
+        @opacity.on_update
+        def _(_) -> None:
+            self.min_opacity = float(opacity.value)
+            self._add_splats()  # replaces the node of the same name
+            self._request_exact()
+
+        @show.on_update
+        def _(_) -> None:
+            for node in self.frustums:
+                node.visible = show.value
+
+        screenshot.on_click(lambda _: self.send_screenshot())
+
+    def go_to(self, view: Viewpoint) -> None:
+        """Put the browser's camera at ``view`` (its pose and vertical field of view)."""
+        rot = view.extrinsics()[:3, :3].double()
+        with self.client.atomic():
+            self.client.camera.fov = view.fov
+            self.client.camera.up_direction = (-rot[:, 1]).numpy()
+            self.client.camera.position = view.position
+            self.client.camera.wxyz = view.wxyz
+
+    def play_path(self) -> None:
+        """Fly along the novel-view path (one frame every 1 / PATH_FPS s); a second click stops it."""
+        if self._playing.is_set():
+            self._playing.clear()
+            return
+        self._playing.set()
+        for view in self.path:
+            if not self._playing.is_set() or self._closed.is_set():
+                break
+            self.go_to(view)
+            time.sleep(1.0 / PATH_FPS)
+        self._playing.clear()
+
+    def send_screenshot(self) -> None:
+        """The current view as a PNG download: the exact image in the exact mode, else the browser's render."""
+        camera = self.client.camera
+        if self.mode == "exact":
+            image = to_uint8(self.render_exact(min(camera.image_height, 1080)))
+        else:
+            image = self.client.get_render(camera.image_height, camera.image_width, transport_format="png")[
+                ..., :3
+            ]
+        self.client.send_file_download("aesplat-view.png", png_bytes(image))
+
+    # ------------------------------------------------------------------------------------------- exact mode
+
+    def viewpoint(self) -> Viewpoint:
+        """The browser's current viewpoint."""
+        camera = self.client.camera
+        return Viewpoint(tuple(camera.wxyz.tolist()), tuple(camera.position.tolist()), float(camera.fov),
+                         float(camera.aspect))  # fmt: skip
+
+    def render_exact(self, height: int | None = None) -> torch.Tensor:
+        """The current viewpoint by this project's rasterizer -> colour [3, H, W]."""
+        options = self.viewer.options
+        height = height or min(options.exact_height, self.client.camera.image_height)
+        return render_viewpoint(self.scene, self.viewpoint(), height, sh_degree=self.sh_degree,
+                                min_opacity=self.min_opacity, backend=options.backend,
+                                device=options.device)  # fmt: skip
+
+    def _show_splats(self) -> None:
+        """Back to the client's splats (the camera moves, or the fast mode)."""
+        if self.showing_exact:
+            self.showing_exact = False
+            self.client.scene.set_background_image(None)
+            self.splats.visible = True
+
+    def _camera_moved(self, _camera) -> None:
+        self._show_splats()
+        self._request_exact()
+
+    def _request_exact(self) -> None:
+        self._last_move = time.monotonic()
+        self._moved.set()
+
+    def _render_loop(self) -> None:
+        """Render the exact image once the camera has rested; drop it if the camera moved meanwhile."""
+        while not self._closed.is_set():
+            if not self._moved.wait(timeout=0.5):
+                continue
+            rest = REST_S - (time.monotonic() - self._last_move)
+            if rest > 0:
+                time.sleep(rest)
+                continue
+            self._moved.clear()
+            if self.mode != "exact" or self._closed.is_set():
+                continue
+            started = self._last_move
+            try:
+                image = to_uint8(self.render_exact())
+            except Exception:  # noqa: BLE001 - a disconnect mid-render; the session closes
+                if self._closed.is_set():
+                    return
+                raise
+            if self._closed.is_set():
+                return  # the tab closed while rendering
+            if self._last_move != started or self.mode != "exact":
+                continue  # stale: the camera moved while rendering
+            with self.client.atomic():
+                self.client.scene.set_background_image(image, format="png")
+                self.splats.visible = False
+            self.showing_exact = True
+            self.last_exact = image
+            self.exact_renders += 1
+
+    def close(self) -> None:
+        self._closed.set()
+        self._playing.clear()
+        self._moved.set()
+        if threading.current_thread() is not self._worker:
+            self._worker.join(timeout=10.0)

@@ -1,0 +1,142 @@
+"""What ``aesplat view`` shows: the Gaussians, the input cameras with their images, and the novel-view path.
+
+Three sources: a prediction folder of ``aesplat predict`` (its PLY, cameras and input images), a 3DGS PLY
+alone (no cameras), or a checkpoint and images (predicted here, nothing written). The Gaussians of a folder or
+a PLY carry the SH bands the PLY holds (``aesplat predict`` writes up to degree 3 unless ``--ply-sh-degree``);
+a prediction made here carries all of the model's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+from ..errors import MissingFileError, UserError
+from ..export import read_ply, read_prediction
+from ..types import Gaussians
+
+
+@dataclass(frozen=True)
+class ViewCamera:
+    """One input camera: its name, image (uint8 [H, W, 3]), camera-to-world [4, 4] and normalised
+    intrinsics [3, 3] (float32), and the image size."""
+
+    name: str
+    image: np.ndarray
+    extrinsics: Tensor
+    intrinsics: Tensor
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class ViewScene:
+    """Everything the viewer shows of one scene.
+
+    gaussians         Gaussians [1, N, ...]
+    cameras           the input views (none for a PLY alone)
+    path_extrinsics   [F, 4, 4] the novel-view path (camera-to-world; F = 0 without one)
+    path_intrinsics   [F, 3, 3] normalised
+    background        [3] the colour renders are composited over
+    render_options    ``RenderSettings`` fields the renders use (as ``aesplat predict`` rendered)
+    source            what was opened, for the page title
+    """
+
+    gaussians: Gaussians
+    cameras: list[ViewCamera]
+    path_extrinsics: Tensor
+    path_intrinsics: Tensor
+    background: Tensor
+    render_options: dict = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def sh_degree(self) -> int:
+        return self.gaussians.sh_degree
+
+
+def _uint8(image: Tensor) -> np.ndarray:
+    """[3, H, W] float in [0, 1] -> uint8 [H, W, 3], rounded as ``aesplat predict`` saves images."""
+    return (image.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    with Image.open(path) as image:
+        return np.asarray(image.convert("RGB"))
+
+
+def scene_from_path(path: str | Path) -> ViewScene:
+    """A prediction folder or a 3DGS ``.ply`` file; anything else is one UserError."""
+    path = Path(path)
+    if path.is_dir():
+        pred = read_prediction(path)
+        cameras = [
+            ViewCamera(name, _read_rgb(img), pred.extrinsics[i], pred.intrinsics[i], pred.width, pred.height)
+            for i, (name, img) in enumerate(zip(pred.names, pred.images))
+        ]
+        return ViewScene(pred.gaussians, cameras, pred.novel_extrinsics, pred.novel_intrinsics, pred.background,
+                         pred.render_options, source=str(path))  # fmt: skip
+    if not path.exists():
+        raise MissingFileError(f"{str(path)!r} does not exist; give a prediction folder or a 3DGS .ply file")
+    if path.suffix.lower() != ".ply":
+        raise UserError(f"{str(path)!r} is neither a prediction folder nor a .ply file")
+    return ViewScene(read_ply(path), [], torch.zeros(0, 4, 4), torch.zeros(0, 3, 3), torch.zeros(3),
+                     source=str(path))  # fmt: skip
+
+
+def scene_from_checkpoint(
+    ckpt: str | Path,
+    images: list[str],
+    *,
+    size: int | None = None,
+    crop: str = "none",
+    device: str = "cpu",
+    path_frames: int = 30,
+) -> ViewScene:
+    """Predict a scene from ``images`` with the checkpoint ``ckpt`` as ``aesplat predict`` does (the first
+    photo's shape for every view, ``size`` its shorter side, ``crop`` as ``--crop``), in memory: nothing is
+    written."""
+    from ..predict import (
+        interpolate_cameras,
+        load_checkpoint,
+        load_image,
+        model_image_shape,
+        photo_size,
+        predict_scene,
+        resolve_device,
+    )
+
+    if len(images) < 2:
+        raise UserError("give at least two images of the same scene after --ckpt")
+    dev = resolve_device(device)
+    loaded = load_checkpoint(ckpt, dev)
+    if loaded.cameras != "predicted":
+        raise UserError(f"{ckpt} was trained with model.cameras={loaded.cameras}: it predicts no cameras for "
+                        "images; view it with a checkpoint trained with model.cameras=predicted")  # fmt: skip
+    loaded.model.check_context_views(len(images))
+    size, patch = size or loaded.image_size, loaded.patch_size
+    if size % patch != 0:
+        raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
+    background = loaded.background
+    shape = model_image_shape(*photo_size(images[0]), size, patch, crop)
+    inputs = [load_image(p, size, tuple(background.tolist()), patch=patch, shape=shape) for p in images]
+    pixels = torch.stack([i.image for i in inputs]).to(dev)
+    try:
+        pred = predict_scene(loaded.model, pixels)
+    except ValueError as err:
+        raise UserError(str(err)) from None
+    ext, intr = pred.extrinsics.cpu(), pred.intrinsics.cpu()
+    height, width = shape
+    cameras = [
+        ViewCamera(Path(p).stem, _uint8(pixels[i]), ext[i], intr[i], width, height)
+        for i, p in enumerate(images)
+    ]
+    path_ext, path_int = interpolate_cameras(ext, intr, path_frames)
+    options = dict(loaded.render.get("options", {}))
+    return ViewScene(pred.gaussians.to("cpu"), cameras, path_ext, path_int, background, options,
+                     source=f"{Path(ckpt).name} on {len(images)} images")  # fmt: skip

@@ -1,0 +1,132 @@
+"""Training and evaluation when the number of context views changes from one batch to the next (hand-made
+batches): a ``pool`` network takes them all, a ``concat`` one is refused in one line before any step."""
+
+import csv
+import json
+
+import lightning as L
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from aesplat.errors import UserError
+from aesplat.geometry import intrinsics_from_fov, make_pose
+from aesplat.train import AESplatModule
+from aesplat.train.evaluation import summarize
+from aesplat.train.module import context_view_counts
+from aesplat.types import BatchedExample, BatchedViews
+
+SIZE = 28
+
+
+def _views(b: int, v: int, gen: torch.Generator, first_frame: int) -> BatchedViews:
+    centres = torch.zeros(b, v, 3)
+    centres[..., 0] = 0.05 * torch.arange(first_frame, first_frame + v)
+    return BatchedViews(
+        images=torch.randint(0, 256, (b, v, 3, SIZE, SIZE), generator=gen, dtype=torch.uint8),
+        extrinsics=make_pose(torch.eye(3).expand(b, v, 3, 3), centres),
+        intrinsics=intrinsics_from_fov(torch.full((b, v), 1.0)),
+        index=torch.arange(first_frame, first_frame + v).expand(b, v).clone(),
+    )
+
+
+def _batch(context_views: int, seed: int, b: int = 2) -> BatchedExample:
+    gen = torch.Generator().manual_seed(seed)
+    return BatchedExample(
+        context=_views(b, context_views, gen, 0),
+        target=_views(b, 1, gen, context_views),
+        scene=[f"s{seed}_{i}" for i in range(b)],
+        overlap=torch.full((b,), 0.5),
+        gap=torch.full((b,), context_views - 1),
+        dataset=["hand"] * b,
+    )
+
+
+class HandMadeData(L.LightningDataModule):
+    """Fixed batches, their context counts declared as a data module declares them (``num_context_views``)."""
+
+    def __init__(self, counts: list[int], declared) -> None:
+        super().__init__()
+        self.batches = [_batch(c, seed) for seed, c in enumerate(counts)]
+        self.num_context_views = declared
+
+    def train_dataloader(self):
+        return DataLoader(self.batches, batch_size=None)
+
+    def test_dataloader(self):
+        return DataLoader(self.batches, batch_size=None)
+
+
+def _module(aggregation: str, tmp_path) -> AESplatModule:
+    return AESplatModule(
+        net={"size": "tiny", "sh_degree": 1, "view_aggregation": aggregation, "far": 20.0},
+        loss={"lpips_weight": 0.0},
+        optim={"warmup_steps": 1},
+        render={"backend": "torch"},
+        eval={"output_dir": str(tmp_path / "test"), "num_sample_renders": 1, "metrics_lpips": False},
+    )
+
+
+def _trainer(tmp_path, steps: int) -> L.Trainer:
+    return L.Trainer(accelerator="cpu", devices=1, max_steps=steps, logger=False, enable_progress_bar=False,
+                     enable_model_summary=False, enable_checkpointing=False, num_sanity_val_steps=0,
+                     limit_val_batches=0, log_every_n_steps=1, default_root_dir=str(tmp_path))  # fmt: skip
+
+
+def test_a_pool_module_trains_and_tests_on_batches_of_different_counts(tmp_path):
+    L.seed_everything(0)
+    counts = [2, 4, 3, 2, 5]
+    module, data = _module("pool", tmp_path), HandMadeData(counts, declared=[2, 5])
+    before = {n: p.detach().clone() for n, p in module.model.named_parameter_groups()["appearance"]}
+    trainer = _trainer(tmp_path, steps=len(counts))
+    trainer.fit(module, datamodule=data)
+    assert trainer.global_step == len(counts) and module.skipped_steps == 0
+    assert trainer.callback_metrics["train/context_views"] == counts[-1]
+    moved = [n for n, p in module.model.named_parameter_groups()["appearance"] if not torch.equal(p, before[n])]
+    assert len(moved) == len(before)  # every appearance parameter trained, whatever the count
+
+    trainer.test(module, datamodule=data)
+    with open(tmp_path / "test" / "per_scene.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted(int(r["context_views"]) for r in rows) == sorted(c for c in counts for _ in range(2))
+    summary = json.loads((tmp_path / "test" / "summary.json").read_text())
+    assert set(summary["context_views"]) == {"2", "3", "4", "5"}
+    assert summary["context_views"]["2"]["num_scenes"] == 4 and summary["context_views"]["5"]["num_scenes"] == 2
+    for per_count in summary["context_views"].values():
+        assert per_count["psnr"] is not None and per_count["rot_err_deg"] is not None
+
+
+def test_a_concat_module_refuses_a_data_count_it_cannot_take_before_any_step(tmp_path):
+    module, data = _module("concat", tmp_path), HandMadeData([2, 3], declared=[2, 3])
+    before = [p.detach().clone() for p in module.model.parameters()]
+    trainer = _trainer(tmp_path, steps=2)
+    with pytest.raises(UserError, match="view_aggregation: pool") as err:
+        trainer.fit(module, datamodule=data)
+    assert "\n" not in str(err.value)
+    assert trainer.global_step == 0
+    assert all(torch.equal(a, b) for a, b in zip(before, module.model.parameters()))
+
+
+@pytest.mark.parametrize(
+    ("declared", "counts"), [(2, [2]), ([2, 4], [2, 3, 4]), ((3, 3), [3]), (None, []), ("2", [])]
+)
+def test_context_view_counts_reads_a_number_or_a_range(declared, counts):
+    class Data:
+        num_context_views = declared
+
+    assert context_view_counts(Data()) == counts
+    assert context_view_counts(None) == []
+
+
+def test_summary_gives_every_metric_per_context_count():
+    rows = [
+        {"scene": "a", "bucket": "small", "context_views": 2, "psnr": 20.0, "rot_err_deg": 2.0},
+        {"scene": "b", "bucket": "small", "context_views": 2, "psnr": 22.0, "rot_err_deg": 4.0},
+        {"scene": "c", "bucket": "large", "context_views": 4, "psnr": 25.0, "rot_err_deg": 1.0},
+        {"scene": "d", "bucket": "large", "psnr": 30.0},  # written before the count was recorded
+    ]
+    per_count = summarize(rows)["context_views"]
+    assert per_count["2"]["num_scenes"] == 2 and per_count["2"]["psnr"] == 21.0
+    assert per_count["2"]["rot_err_deg"] == 3.0
+    assert per_count["4"]["num_scenes"] == 1 and per_count["4"]["psnr"] == 25.0
+    assert set(per_count) == {"2", "4"}
