@@ -100,5 +100,8 @@ def test_evaluation_contexts_are_deterministic_and_avoid_the_targets():
     assert evaluation_context((30, 10), target, 3) == (30, 19, 10)  # view 0 stays the index's first frame
     assert evaluation_context((4, 8), (5, 6, 7), 3) is None  # no free frame between
     assert evaluation_context((1, 5, 9), (3,), 3) == (1, 5, 9)  # an index entry of k views is kept
+    # An index of more views listed pair first, extras after: other counts span the pair, view 0 first.
+    assert evaluation_context((10, 30, 17, 23), target, 2) == (10, 30)
+    assert evaluation_context((30, 10, 17, 23), target, 3) == (30, 19, 10)
     assert evaluation_sample(8, 5, 3) == ((1, 6), (2, 4, 5))
     assert evaluation_sample(30, 3, 5)[1] == (14, 15)  # only two frames lie between

@@ -137,13 +137,13 @@ def evaluation_sample(num_frames: int, gap: int, num_targets: int) -> tuple[tupl
 
 def evaluation_context(context: tuple[int, ...], target: tuple[int, ...], k: int) -> tuple[int, ...] | None:
     """The k context views of an evaluation sample whose index gives ``context`` and ``target``: the index's own
-    when it has k views; otherwise its first and last context frames with ``k - 2`` frames evenly spaced between
-    them, each moved to the nearest frame that is neither a target nor already taken (the lower one on a tie).
-    None when too few frames lie between. View 0 stays the index's first context frame."""
+    when it has k views; otherwise its outermost context frames (the lowest and the highest) with ``k - 2``
+    frames evenly spaced between them, each moved to the nearest frame that is neither a target nor already
+    taken (the lower one on a tie). None when too few frames lie between. View 0 is the outer frame nearer the
+    index's first context frame (the frame itself, for a pair or a context listed pair first)."""
     if len(context) == k:
         return tuple(context)
-    first, last = context[0], context[-1]
-    lo, hi = min(first, last), max(first, last)
+    lo, hi = min(context), max(context)
     taken = set(target) | {lo, hi}
     extras: list[int] = []
     for j in range(1, k - 1):
@@ -154,4 +154,4 @@ def evaluation_context(context: tuple[int, ...], target: tuple[int, ...], k: int
         extras.append(candidates[0])
         taken.add(candidates[0])
     frames = (lo, *sorted(extras), hi)
-    return frames if first <= last else frames[::-1]
+    return frames if context[0] - lo <= hi - context[0] else frames[::-1]
