@@ -1,95 +1,292 @@
-"""Data benchmark: synthetic generation time per scene, conversion time, and loader throughput.
+#!/usr/bin/env python
+"""Data benchmark: storage per scene, conversion time and training-loader throughput, pre-drawn samples (the
+pipeline at ``--baseline``) against scene shards (this checkout), side by side in one run.
 
-    python benchmarks/bench_data.py [--size 224] [--batch-size 10] [--workers 2] [--batches 40]
-                                    [--gpu-steps-per-second 4] [--out DIR]
+    python benchmarks/bench_data.py [--baseline c5c0f51] [--work outputs/bench_data] [--out docs/results/data]
+        [--size 224 --re10k-size 256 --batch-size 10 --workers 2 --batches 100 --repeats 5]
 
-Builds a synthetic set (in a temporary folder unless --out), converts it to --size shards, then times the
-training stream of the DataModule (2 context + 1 target views, uint8 batches, flip augmentation on) with
---workers DataLoader workers and in the main process. The curriculum case "paper initial range" keeps only the
-smallest-gap sample of each scene (1 in 8), the worst acceptance the 25 -> 90 schedule sees. Prints markdown.
-The loader must outrun the GPU: the needed rate is batch size x GPU steps per second.
+Two sources, made once into ``--work`` (kept for the next call): the synthetic set as the earlier figures
+measured it (16 training and 4 test scenes of 32 frames at 180x320), and a RealEstate10K-layout chunk source
+(8 training and 2 test scenes of 125 frames at 360x640 JPEGs, about RealEstate10K's 10 million frames over
+80,000 clips; rendered by the synthetic generator, so its images are simpler than photos). Each pipeline runs
+in a subprocess of its own: the baseline's ``src/`` is extracted with ``git archive`` (the last commit whose
+training shards held pre-drawn samples: 8 per scene with 2 context and 3 target views), this checkout's with
+its own. Each converts both sources (2 processes; synthetic at ``--size``, RealEstate10K-layout at
+``--re10k-size`` as conf/re10k.yaml's comment converts it), then times the training stream of its
+DataModule: ``--workers`` DataLoader workers, ``--size`` images, batch ``--batch-size``, flip augmentation on,
+2 context and 1 target views, in the first curriculum phase (the smallest gap only: the paper's 25 frames
+for the RealEstate10K layout) and with every gap allowed; scene shards also with ``examples_per_scene`` 4.
+Conversions run ``--repeats`` times and loader runs ``--repeats`` times per case, alternating between the
+pipelines, so a change in the machine's load hits both; the tables give the median and the range (on a shared
+machine other processes only ever slow a run down). The load average is recorded around every measurement.
+
+Writes ``--out``/bench_data.json (every figure, the date, commit, machine and load) and
+``--out``/bench_data.md (the table the docs page includes).
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tarfile
 import tempfile
 import time
 from pathlib import Path
 
-import torch
+ROOT = Path(__file__).resolve().parents[1]
+BASELINE = "c5c0f51"  # main before training drew its views at run time: pre-drawn samples, manifest version 1
+SOURCES = {  # name: (generate_dataset arguments, the gap range of its curriculum: first phase = lo only)
+    "synthetic": (
+        {"scenes": 16, "test_scenes": 4, "val_scenes": 0, "frames": 32, "height": 180, "width": 320, "seed": 1},
+        (5, 21),
+    ),  # fmt: skip
+    "re10k-layout": (
+        {"scenes": 8, "test_scenes": 2, "val_scenes": 0, "frames": 125, "height": 360, "width": 640, "seed": 2},
+        (25, 90),
+    ),  # fmt: skip
+}
 
-from aesplat.data import DataModule, convert_dataset, generate_dataset
+
+def load() -> float:
+    return round(os.getloadavg()[0], 2)
 
 
-def time_generation(out: Path, scenes: int, frames: int, height: int, width: int) -> float:
-    """Seconds per scene of ``generate_dataset`` (train + test scenes, writing included)."""
-    start = time.perf_counter()
-    info = generate_dataset(out, scenes=scenes, test_scenes=max(1, scenes // 4), frames=frames, height=height,
-                            width=width, seed=0)  # fmt: skip
-    return (time.perf_counter() - start) / (info["train_scenes"] + info["test_scenes"])
+def machine() -> dict:
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.processor())  # fmt: skip
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "system": platform.platform(),
+    }
 
 
-def loader_rate(
-    root: Path, size: int, batch_size: int, workers: int, batches: int, gap: tuple[int, int]
-) -> float:
-    """Training samples per second of the DataModule's stream, after a warm-up."""
-    dm = DataModule(root=str(root), image_size=size, batch_size=batch_size, num_workers=workers,
+def git(*args: str) -> str:
+    return subprocess.run(
+        ["git", "-C", str(ROOT), *args], check=True, capture_output=True, text=True
+    ).stdout.strip()
+
+
+# ----------------------------------------------------------------------------------------------- one pipeline
+
+
+def run_pipeline(name: str, work: Path, size: int, re10k_size: int, source: str) -> dict:
+    """In the subprocess: convert ``source`` with whichever ``aesplat`` is importable, return its figures."""
+    from aesplat.data import convert_dataset
+
+    out = work / name / source
+    shutil.rmtree(out, ignore_errors=True)  # timed from scratch, never resumed
+    shard_size = re10k_size if source == "re10k-layout" else size
+    before, start = load(), time.perf_counter()
+    manifest = convert_dataset(work / "src" / source, out, size=shard_size, workers=2, progress=False)
+    seconds = time.perf_counter() - start
+    splits = manifest["splits"]
+    return {
+        "size": shard_size,
+        "seconds": seconds,
+        "scenes": sum(e["scenes"] for e in splits.values()),
+        "train_scenes": splits["train"]["scenes"],
+        "train_bytes": sum(s["bytes"] for s in splits["train"]["shards"]),
+        "test_scenes": splits["test"]["scenes"],
+        "test_bytes": sum(s["bytes"] for s in splits["test"]["shards"]),
+        "load": [before, load()],
+    }
+
+
+def loader_rate(name: str, work: Path, source: str, gap: tuple[int, int], size: int, batch_size: int,
+                workers: int, batches: int, examples_per_scene: int) -> dict:  # fmt: skip
+    """In the subprocess: training samples per second of the DataModule's stream, after a warm-up."""
+    from aesplat.data import DataModule
+
+    extra = {"examples_per_scene": examples_per_scene} if examples_per_scene > 1 else {}
+    dm = DataModule(root=str(work / name / source), image_size=size, batch_size=batch_size, num_workers=workers,
                     gap_initial=gap, gap_final=gap, gap_warmup_steps=0, flip_augment=True,
-                    train_batches_per_epoch=batches + 3)  # fmt: skip
+                    train_batches_per_epoch=batches + 3, **extra)  # fmt: skip
+    before = load()
     it = iter(dm.train_dataloader())
     for _ in range(3):  # worker start-up and the shuffle buffers
         next(it)
-    start = time.perf_counter()
-    n = 0
+    start, n = time.perf_counter(), 0
     for batch in it:
         n += batch.batch_size
-    return n / (time.perf_counter() - start)
+    return {"samples_per_second": n / (time.perf_counter() - start), "load": [before, load()]}
 
 
-def main() -> None:
+def in_subprocess(pythonpath: Path, task: str, payload: dict) -> dict:
+    """Run ``task`` of this file with ``pythonpath`` first on the path; its figures come back as JSON."""
+    env = {**os.environ, "PYTHONPATH": str(pythonpath), "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, __file__, "--task", task, "--payload", json.dumps(payload)]
+    done = subprocess.run(command, env=env, check=True, capture_output=True, text=True, cwd=ROOT)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+# ----------------------------------------------------------------------------------------------- the run
+
+
+def make_sources(work: Path) -> None:
+    """The two sources, generated once. The RealEstate10K-layout one loses its ``dataset.json`` (kept as
+    ``generated.json``): RealEstate10K has none, so both pipelines take their default gap range, 25..90."""
+    from aesplat.data import generate_dataset
+
+    for name, (options, _) in SOURCES.items():
+        src = work / "src" / name
+        if not (src / "train" / "index.json").is_file():
+            print(f"bench_data: generating the {name} source", flush=True)
+            generate_dataset(src, scenes_per_chunk=4, progress=True, **options)
+            if name == "re10k-layout":
+                (src / "dataset.json").rename(src / "generated.json")
+
+
+def baseline_source(ref: str, work: Path) -> Path:
+    """``src/`` of commit ``ref``, extracted into ``work/baseline-REF``."""
+    folder = work / f"baseline-{ref}"
+    if not (folder / "src" / "aesplat" / "__init__.py").is_file():
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile() as archive:
+            subprocess.run(["git", "-C", str(ROOT), "archive", ref, "src"], check=True, stdout=archive)
+            archive.seek(0)
+            with tarfile.open(fileobj=archive) as tar:
+                tar.extractall(folder, filter="data")
+    return folder / "src"
+
+
+def spread(values: list[float], pattern: str) -> str:
+    """Median (lowest–highest) of repeated measurements."""
+    low, high = pattern.format(min(values)), pattern.format(max(values))
+    return f"{pattern.format(statistics.median(values))} ({low}–{high})"
+
+
+def table(result: dict) -> list[str]:
+    names = {"today": f"pre-drawn samples ({result['baseline']})", "scenes": "scene shards"}
+    lines = [
+        "| source | figure | " + " | ".join(names.values()) + " | ratio of medians |",
+        "| --- | --- | ---: | ---: | ---: |",
+    ]
+    for source in SOURCES:
+        runs = {p: result["conversion"][source][p] for p in names}
+        size = runs["scenes"][0]["size"]
+        rows = (
+            ("training shard per scene (MB)", lambda c: c["train_bytes"] / c["train_scenes"] / 1e6, "{:.2f}"),
+            ("test shard per scene (MB)", lambda c: c["test_bytes"] / c["test_scenes"] / 1e6, "{:.3f}"),
+        )
+        for label, value, pattern in rows:  # the same bytes every repeat
+            a, b = value(runs["today"][0]), value(runs["scenes"][0])
+            lines.append(f"| {source} ({size} px) | {label} | {pattern.format(a)} | {pattern.format(b)} | "
+                         f"{b / a:.2f}× |")  # fmt: skip
+        seconds = {p: [c["seconds"] / c["scenes"] for c in runs[p]] for p in names}
+        ratio = statistics.median(seconds["scenes"]) / statistics.median(seconds["today"])
+        lines.append(
+            f"| {source} ({size} px) | conversion, 2 processes (s per scene) | "
+            f"{spread(seconds['today'], '{:.2f}')} | {spread(seconds['scenes'], '{:.2f}')} | {ratio:.2f}× |"
+        )
+    for case in result["loader"]:
+        rates = {p: [r["samples_per_second"] for r in case["runs"][p]] for p in names if p in case["runs"]}
+        cells = [spread(rates[p], "{:.0f}") if p in rates else "—" for p in names]
+        ratio = ""
+        if "today" in rates:
+            ratio = f"{statistics.median(rates['scenes']) / statistics.median(rates['today']):.2f}×"
+        lines.append(f"| {case['source']} ({case['size']} px) | loader samples/s, {case['label']} | "
+                     f"{' | '.join(cells)} | {ratio} |")  # fmt: skip
+    batch = result["settings"]["batch_size"]
+    lines.append(
+        f"| | loader samples/s needed by one GPU at 4 steps/s × batch {batch} | {4 * batch} | {4 * batch} | |"
+    )
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--size", type=int, default=224)
+    p.add_argument("--baseline", default=BASELINE, help=f"the commit of the pre-drawn pipeline ({BASELINE})")
+    p.add_argument("--work", type=Path, default=ROOT / "outputs" / "bench_data", help="sources and shards")
+    p.add_argument("--out", type=Path, default=ROOT / "docs" / "results" / "data", help="bench_data.json/.md")
+    p.add_argument("--size", type=int, default=224, help="image side of the synthetic shards and of the loader")
+    p.add_argument("--re10k-size", type=int, default=256, help="image side of the RealEstate10K-layout shards")
     p.add_argument("--batch-size", type=int, default=10)
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--batches", type=int, default=40, help="timed batches per loader case")
-    p.add_argument("--scenes", type=int, default=16, help="training scenes of the benchmark set")
-    p.add_argument("--gpu-steps-per-second", type=float, default=4.0)
-    p.add_argument("--out", default=None, help="keep the generated data here (default: a temporary folder)")
-    a = p.parse_args()
-    torch.set_num_threads(2)
-    work = Path(a.out) if a.out else Path(tempfile.mkdtemp(prefix="bench_data_"))
+    p.add_argument("--workers", type=int, default=2, help="DataLoader workers")
+    p.add_argument("--batches", type=int, default=100, help="timed batches per loader run")
+    p.add_argument("--repeats", type=int, default=5, help="conversions and loader runs per case and pipeline")
+    p.add_argument("--task", help=argparse.SUPPRESS)
+    p.add_argument("--payload", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.task:  # inside a pipeline's subprocess
+        payload = json.loads(a.payload)
+        payload["work"] = Path(payload["work"])
+        task = {"convert": run_pipeline, "loader": loader_rate}[a.task]
+        print(json.dumps(task(**payload)))
+        return 0
 
-    rows = ["| case | figure |", "| --- | --- |"]
-    for frames, h, w in ((24, 64, 96), (32, 96, 128), (32, 180, 320)):
-        per_scene = time_generation(work / f"gen_{h}x{w}", 4, frames, h, w)
-        rows.append(f"| synthetic generation, {frames} frames at {h}x{w} | {per_scene:.2f} s / scene |")
-
-    src = work / "src"
-    generate_dataset(src, scenes=a.scenes, test_scenes=4, frames=32, height=180, width=320, seed=1)
-    start = time.perf_counter()
-    manifest = convert_dataset(src, work / "shards", size=a.size, workers=a.workers, progress=False)
-    seconds = time.perf_counter() - start
-    train = manifest["splits"]["train"]
-    per_scene, rate = seconds / train["scenes"], train["samples"] / seconds
-    rows.append(f"| conversion to {a.size}px shards, {a.workers} processes | {per_scene:.2f} s / scene "
-                f"({rate:.0f} samples/s) |")  # fmt: skip
-    gaps = json.loads((src / "dataset.json").read_text())["gap_range"]
-
-    need = a.batch_size * a.gpu_steps_per_second
-    for workers in (a.workers, 0):
-        for label, gap in (
-            ("all gaps allowed", tuple(gaps)),
-            ("paper initial range (1 in 8 kept)", (gaps[0],) * 2),
-        ):
-            rate = loader_rate(work / "shards", a.size, a.batch_size, workers, a.batches, gap)
-            rows.append(f"| loader, {workers} workers, {label}, {a.size}px, batch {a.batch_size} | "
-                        f"{rate:.0f} samples/s ({rate / a.batch_size:.1f} batches/s) |")  # fmt: skip
-    rows.append(f"| needed by a GPU at {a.gpu_steps_per_second:g} steps/s x batch {a.batch_size} | "
-                f"{need:.0f} samples/s |")  # fmt: skip
-    print("\n".join(rows))
+    work = a.work.resolve()
+    make_sources(work)
+    paths = {"today": baseline_source(a.baseline, work), "scenes": ROOT / "src"}
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+    result: dict = {
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "commit": git("rev-parse", "--short", "HEAD") + ("+changes" if dirty else ""),
+        "baseline": a.baseline,
+        "machine": machine(),
+        "command": "python benchmarks/bench_data.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "settings": {
+            k: v
+            for k, v in vars(a).items()
+            if k in ("size", "re10k_size", "batch_size", "workers", "batches", "repeats")
+        },  # fmt: skip
+        "load_start": load(),
+        "conversion": {},
+        "loader": [],
+    }
+    for source in SOURCES:
+        result["conversion"][source] = {name: [] for name in paths}
+        for _ in range(a.repeats):
+            for name, path in paths.items():
+                print(f"bench_data: converting {source} with {name} ({path})", flush=True)
+                payload = {"name": name, "work": str(work), "size": a.size, "re10k_size": a.re10k_size,
+                           "source": source}  # fmt: skip
+                result["conversion"][source][name].append(in_subprocess(path, "convert", payload))
+    cases = []
+    for source, (_, (lo, hi)) in SOURCES.items():
+        cases.append((source, "first curriculum phase", (lo, lo), 1, ("today", "scenes")))
+        cases.append((source, "every gap", (lo, hi), 1, ("today", "scenes")))
+        cases.append((source, "every gap, 4 examples per scene read", (lo, hi), 4, ("scenes",)))
+    for source, label, gap, per_scene, pipelines in cases:
+        case = {
+            "source": source,
+            "label": f"{label} (gap {gap[0]}–{gap[1]})",
+            "gap": list(gap),
+            "size": a.size,
+            "examples_per_scene": per_scene,
+            "runs": {p: [] for p in pipelines},
+        }
+        for _ in range(a.repeats):
+            for name in pipelines:
+                print(f"bench_data: loader, {name}, {source}, {case['label']}", flush=True)
+                payload = {"name": name, "work": str(work), "source": source, "gap": list(gap), "size": a.size,
+                           "batch_size": a.batch_size, "workers": a.workers, "batches": a.batches,
+                           "examples_per_scene": per_scene}  # fmt: skip
+                case["runs"][name].append(in_subprocess(paths[name], "loader", payload))
+        result["loader"].append(case)
+    result["load_end"] = load()
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / "bench_data.json").write_text(json.dumps(result, indent=1) + "\n")
+    m = result["machine"]
+    header = [
+        f"Measured {result['date'][:10]} at commit {result['commit']} against {a.baseline} on {m['cores']} "
+        f"cores ({m['cpu']}), load average {result['load_start']} at the start and {result['load_end']} at the "
+        f"end; `{result['command'].strip()}`. Median (lowest–highest) of {a.repeats} runs; loader: "
+        f"{a.workers} workers, batch {a.batch_size}, {a.batches} timed batches.",
+        "",
+    ]
+    (a.out / "bench_data.md").write_text("\n".join(header + table(result)) + "\n")
+    print("\n".join(header + table(result)))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -87,3 +87,15 @@ def test_a_forked_worker_ignores_a_stop_signal_the_main_process_acts_on():
 
     with stopping_on_signals():
         main()
+
+
+def test_a_signal_the_process_was_started_to_ignore_stays_ignored():
+    """`nohup` ignores SIGHUP, a shell's background job SIGINT: the command must not start heeding them."""
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with stopping_on_signals():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGHUP)  # nothing happens
+            assert signal.getsignal(signal.SIGTERM) not in (signal.SIG_IGN, signal.SIG_DFL)
+    finally:
+        signal.signal(signal.SIGHUP, before)

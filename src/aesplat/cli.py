@@ -373,7 +373,7 @@ def launching_process() -> bool:
 def check_inputs(command: str, cfg, resuming: bool = False) -> None:
     """Every input a run needs, checked before the trainer, wandb or the model start (one line each).
     ``resuming``: ``--ckpt_path`` was given (``last`` with nothing to resume from included)."""
-    from aesplat.data.datamodule import find_shards, has_split
+    from aesplat.data.datamodule import find_shards, validation_split
     from aesplat.model.weights import read_torch_file
     from aesplat.train.run_dir import run_artifacts
 
@@ -382,8 +382,8 @@ def check_inputs(command: str, cfg, resuming: bool = False) -> None:
     if command == "fit":
         find_shards(cfg.data.root, "train")
         if cfg.trainer.get("limit_val_batches") != 0 and cfg.trainer.get("check_val_every_n_epoch") is not None:
-            # validation runs on the validation split, or on the test split of shards without one
-            find_shards(cfg.data.root, "validation" if has_split(cfg.data.root, "validation") else "test")
+            # validation runs on the validation split; on the test split only when data.validate_on_test asks
+            find_shards(cfg.data.root, validation_split(cfg.data.root, cfg.data.get("validate_on_test", False)))
         held = run_artifacts(run_dir) if launching_process() else []
         if held and ckpt_path is None and not resuming and not cfg.overwrite:
             raise UserError(

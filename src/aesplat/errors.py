@@ -111,6 +111,12 @@ def in_this_process_only(handler: Callable[[int, object], None]) -> Callable[[in
     return only_here
 
 
+def heeded_signals() -> list[int]:
+    """The stop signals this process does not ignore: ``nohup`` ignores SIGHUP, and a shell starts a
+    background job with SIGINT ignored; those stay ignored."""
+    return [s for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN]
+
+
 def _raise_stopped(signum: int, frame: object) -> None:
     if signum == signal.SIGINT:  # as Python does: code that ends on Ctrl-C (a server) catches it
         raise KeyboardInterrupt
@@ -126,7 +132,7 @@ def stopping_on_signals() -> Iterator[None]:
         yield
         return
     handler = in_this_process_only(_raise_stopped)
-    previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS}
+    previous = {s: signal.signal(s, handler) for s in heeded_signals()}
     try:
         yield
     finally:

@@ -22,5 +22,5 @@ def synthetic_src(tmp_path_factory):
 @pytest.fixture(scope="session")
 def synthetic_shards(synthetic_src, tmp_path_factory):
     out = tmp_path_factory.mktemp("shards")
-    convert_dataset(synthetic_src, out, size=SIZE, samples_per_scene=4, progress=False)
+    convert_dataset(synthetic_src, out, size=SIZE, progress=False)
     return out

@@ -19,8 +19,9 @@ import torch
 from PIL import Image
 
 from aesplat.data import convert_dataset
-from aesplat.data.capture_shards import convert_captures, evaluation_sample
-from aesplat.data.captures import Camera, distorted_pixels, read_colmap, undistort, undistortion_zoom
+from aesplat.data.lens import Camera, distorted_pixels, undistort, undistortion_zoom
+from aesplat.data.sampler import evaluation_sample
+from aesplat.data.sources.colmap import colmap_camera, read_colmap, read_colmap_cameras
 from aesplat.data.stream import read_tar
 from aesplat.data.synthetic_scenes import render_scene, sample_scene, scene_to_chunk_entry
 
@@ -39,7 +40,7 @@ MODEL_IDS = {
 }
 
 
-# ----------------------------------------------------------------------------------------------- exporters
+# -------------------------------------------------------------------------------------------------- exporters
 
 
 def rotation_to_quaternion(r: np.ndarray) -> np.ndarray:
@@ -106,8 +107,11 @@ def export_nerfstudio(scene_dir: Path, images: list[bytes], c2w: np.ndarray, k: 
 
 
 def export_colmap(scene_dir: Path, images: list[bytes], c2w: np.ndarray, k: np.ndarray, *, binary: bool,
-                  model: str = "PINHOLE", extra: tuple[float, ...] = (), ext: str = "jpg") -> None:  # fmt: skip
-    """sparse/0/{cameras,images}.{txt,bin}: world-to-camera quaternion + translation, one camera."""
+                  model: str = "PINHOLE", extra: tuple[float, ...] = (), ext: str = "jpg",
+                  points: str = "alternate") -> None:  # fmt: skip
+    """sparse/0/{cameras,images}.{txt,bin}: world-to-camera quaternion + translation, one camera. Text models:
+    ``points`` ``alternate`` writes every other POINTS2D line empty, ``none`` writes no POINTS2D lines (header
+    lines only), ``blank`` adds a stray blank line after every image's two lines."""
     names = write_images(scene_dir / "images", images, ext)
     fx, fy, cx, cy = k[0, 0] * W, k[1, 1] * H, k[0, 2] * W, k[1, 2] * H
     params = [fx, cx, cy] if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL") else [fx, fy, cx, cy]
@@ -141,12 +145,15 @@ def export_colmap(scene_dir: Path, images: list[bytes], c2w: np.ndarray, k: np.n
         ]
         for n, (iid, q, t, name) in enumerate(poses):
             lines.append(f"{iid} {' '.join(repr(float(v)) for v in [*q, *t])} 7 {name}")
-            lines.append("" if n % 2 else "1.5 2.5 -1 3.5 4.5 12")  # empty points lines are allowed
+            if points != "none":
+                lines.append("" if n % 2 else "1.5 2.5 -1 3.5 4.5 12")  # empty points lines are allowed
+            if points == "blank":
+                lines.append("")
         (model_dir / "images.txt").write_text("\n".join(lines) + "\n")
     (model_dir / "points3D.txt").write_text("# not read\n")
 
 
-# ----------------------------------------------------------------------------------------------- fixtures
+# --------------------------------------------------------------------------------------------------- fixtures
 
 
 @pytest.fixture(scope="module")
@@ -186,12 +193,12 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 def convert_one(src: Path, out: Path, fmt: str, **kw) -> tuple[dict, dict]:
     index = src.parent / "index.json"
     index.write_text(json.dumps({"room": INDEX}))
-    manifest = convert_captures(src, out, fmt, size=SIZE, eval_index=index, progress=False, **kw)
+    manifest = convert_dataset(src, out, fmt, size=SIZE, eval_index=index, progress=False, **kw)
     samples = {k: v for shard in sorted((out / "test").glob("*.tar")) for k, v in read_tar(shard)}
     return manifest, samples
 
 
-# ----------------------------------------------------------------------------------------------- round trips
+# ------------------------------------------------------------------------------------------------ round trips
 
 
 def random_rigid(seed: int) -> np.ndarray:
@@ -227,7 +234,7 @@ def test_captures_match_the_chunk_path(variant, scene, chunk_reference, tmp_path
     if kw.get("frame_order") == "file":
         index = {key: [FRAMES - 1 - f for f in INDEX[key]] for key in ("context", "target")}
     (tmp_path / "index.json").write_text(json.dumps({"room": index}))
-    manifest = convert_captures(src, tmp_path / "out", fmt, size=SIZE, eval_index=tmp_path / "index.json",
+    manifest = convert_dataset(src, tmp_path / "out", fmt, size=SIZE, eval_index=tmp_path / "index.json",
                                 progress=False, **kw)  # fmt: skip
     assert manifest["splits"]["test"]["refused"] == {} and manifest["splits"]["test"]["samples"] == 1
     sample = dict(read_tar(next((tmp_path / "out" / "test").glob("*.tar"))))["room"]
@@ -268,7 +275,7 @@ def test_downscaled_image_folder_keeps_normalised_intrinsics(scene, chunk_refere
     assert "32x27" in manifest["splits"]["test"]["refused"]["room"]
 
 
-# ----------------------------------------------------------------------------------------------- distortion
+# ------------------------------------------------------------------------------------------------- distortion
 
 
 @pytest.fixture(scope="module")
@@ -384,7 +391,7 @@ def test_undistortion_zooms_until_no_pixel_is_blank(model, coeffs):
     assert np.asarray(undistort(white, cam, 1.0)).min() < 200  # without the zoom the corners go blank
 
 
-# ----------------------------------------------------------------------------------------------- refusals
+# --------------------------------------------------------------------------------------------------- refusals
 
 
 def test_bad_scenes_are_refused_with_one_line_each_and_the_rest_convert(scene, chunk_reference, tmp_path):
@@ -418,7 +425,7 @@ def test_bad_scenes_are_refused_with_one_line_each_and_the_rest_convert(scene, c
     cams = src / "colmap_fov" / "sparse" / "0" / "cameras.txt"
     cams.write_text(cams.read_text().replace(" PINHOLE ", " FOV ").rstrip() + " 0.9\n")
 
-    manifest = convert_captures(src, tmp_path / "out", "nerfstudio", size=SIZE, context_gap=5, progress=False)
+    manifest = convert_dataset(src, tmp_path / "out", "nerfstudio", size=SIZE, context_gap=5, progress=False)
     test = manifest["splits"]["test"]
     assert test["scenes"] == 1 and test["samples"] == 1 and test["scenes_seen"] == 10
     assert test["skips"] == {
@@ -435,14 +442,14 @@ def test_bad_scenes_are_refused_with_one_line_each_and_the_rest_convert(scene, c
     assert "5 frames" in refused["short"] and "--context-gap" in refused["short"]
     assert [p.name for p in (tmp_path / "out" / "test").glob("*.tar")] == ["test-good.tar"]
 
-    colmap = convert_captures(src, tmp_path / "out_colmap", "colmap", size=SIZE, context_gap=5, progress=False)
+    colmap = convert_dataset(src, tmp_path / "out_colmap", "colmap", size=SIZE, context_gap=5, progress=False)
     fov = colmap["splits"]["test"]["refused"]["colmap_fov"]
     assert "FOV is not supported" in fov and "image_undistorter" in fov
     with pytest.raises(FileNotFoundError, match="one folder per scene"):
-        convert_captures(tmp_path / "absent", tmp_path / "x", "colmap", progress=False)
+        convert_dataset(tmp_path / "absent", tmp_path / "x", "colmap", progress=False)
 
 
-# ----------------------------------------------------------------------------------------------- evaluation
+# ------------------------------------------------------------------------------------------------- evaluation
 
 
 def test_generated_evaluation_samples_are_stated_and_repeatable(scene, chunk_reference, tmp_path):
@@ -451,23 +458,25 @@ def test_generated_evaluation_samples_are_stated_and_repeatable(scene, chunk_ref
     c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
     export_colmap(tmp_path / "src" / "room", jpegs, c2w, k, binary=True)
     out = tmp_path / "out"
-    manifest = convert_captures(tmp_path / "src", out, "colmap", size=SIZE, context_gap=5, num_targets=3,
+    manifest = convert_dataset(tmp_path / "src", out, "colmap", size=SIZE, context_gap=5, num_targets=3,
                                 progress=False)  # fmt: skip
     files = [f"frame_{i:05d}.jpg" for i in (1, 6, 2, 4, 5)]
-    assert manifest["evaluation_samples"] == {"room": {"context": [1, 6], "target": [2, 4, 5], "files": files}}
-    assert evaluation_sample(8, 5, 3) == {"context": [1, 6], "target": [2, 4, 5], "overlap": None}
-    assert evaluation_sample(30, 3, 5)["target"] == [14, 15]  # only two frames lie between
+    stated = manifest["splits"]["test"]["evaluation_samples"]
+    assert stated["room"]["context"] == [1, 6] and stated["room"]["target"] == [2, 4, 5]
+    assert stated["room"]["files"] == files and stated["room"]["context_views"]["3"] == [1, 3, 6]
+    assert evaluation_sample(8, 5, 3) == ((1, 6), (2, 4, 5))
     shard = out / "test" / "test-room.tar"
     stamp, digest = shard.stat().st_mtime_ns, manifest["splits"]["test"]["shards"][0]["sha256"]
 
-    again = convert_captures(tmp_path / "src", out, "colmap", size=SIZE, context_gap=5, progress=False)
+    again = convert_dataset(tmp_path / "src", out, "colmap", size=SIZE, context_gap=5, progress=False)
     assert shard.stat().st_mtime_ns == stamp and again["splits"] == manifest["splits"]  # resumed, not redone
-    (tmp_path / "samples.json").write_text(json.dumps(manifest["evaluation_samples"]))
-    indexed = convert_captures(tmp_path / "src", tmp_path / "out2", "colmap", size=SIZE, progress=False,
+    (tmp_path / "samples.json").write_text(json.dumps(stated))
+    indexed = convert_dataset(tmp_path / "src", tmp_path / "out2", "colmap", size=SIZE, progress=False,
                                eval_index=tmp_path / "samples.json")  # fmt: skip
     assert indexed["splits"]["test"]["shards"][0]["sha256"] == digest  # the stated samples repeat the shard
-    other = convert_captures(tmp_path / "src", out, "colmap", size=SIZE, context_gap=4, progress=False)
-    assert other["evaluation_samples"]["room"]["context"] == [1, 5] and shard.stat().st_mtime_ns != stamp
+    other = convert_dataset(tmp_path / "src", out, "colmap", size=SIZE, context_gap=4, progress=False)
+    assert other["splits"]["test"]["evaluation_samples"]["room"]["context"] == [1, 5]
+    assert shard.stat().st_mtime_ns != stamp
 
 
 def test_aesplat_test_runs_on_converted_captures(scene, chunk_reference, tmp_path, monkeypatch):
@@ -480,7 +489,7 @@ def test_aesplat_test_runs_on_converted_captures(scene, chunk_reference, tmp_pat
     c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
     for name in ("room_a", "room_b"):
         export_colmap(tmp_path / "src" / name, jpegs, c2w, k, binary=True)
-    convert_captures(tmp_path / "src", tmp_path / "shards", "colmap", size=28, context_gap=5, progress=False)
+    convert_dataset(tmp_path / "src", tmp_path / "shards", "colmap", size=28, context_gap=5, progress=False)
     run = tmp_path / "run"
     cli.main(["test", "-c", str(REPO / "conf" / "smoke.yaml"), "--data.root", str(tmp_path / "shards"),
               "--trainer.default_root_dir", str(run)])  # fmt: skip
@@ -488,18 +497,32 @@ def test_aesplat_test_runs_on_converted_captures(scene, chunk_reference, tmp_pat
     assert summary["num_scenes"] == 2 and summary["metrics"]["psnr"] > 5
 
 
-def test_read_colmap_text_and_binary_agree(scene, chunk_reference, tmp_path):
+@pytest.mark.parametrize("points", ["alternate", "none", "blank"])
+def test_read_colmap_text_and_binary_agree(points, scene, chunk_reference, tmp_path):
+    """Text models read every image whether their POINTS2D lines are there, missing, or padded with blanks."""
     s, _ = scene
     _, jpegs = chunk_reference
     c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
     for binary in (False, True):
-        export_colmap(tmp_path / str(binary) / "room", jpegs, c2w, k, binary=binary, model="RADIAL",
-                      extra=(0.01, -0.002))  # fmt: skip
+        export_colmap(
+            tmp_path / str(binary) / "room",
+            jpegs,
+            c2w,
+            k,
+            binary=binary,
+            model="RADIAL",
+            extra=(0.01, -0.002),
+            points=points,
+        )
     text, binary = (read_colmap(tmp_path / name / "room") for name in ("False", "True"))
     np.testing.assert_allclose(text.c2w, c2w, atol=1e-6)  # the scene holds float32 rotations
     np.testing.assert_allclose(binary.c2w, text.c2w, atol=1e-12)
+    np.testing.assert_allclose(binary.intrinsics, text.intrinsics, atol=1e-12)
     assert text.names == binary.names == [f"frame_{i:05d}.jpg" for i in range(FRAMES)]
-    assert text.cameras[0] == binary.cameras[0] and binary.cameras[0].distortion == (0.01, -0.002, 0.0, 0.0)
+    cameras = [read_colmap_cameras(tmp_path / name / "room" / "sparse" / "0" / f"cameras.{ext}")
+               for name, ext in (("False", "txt"), ("True", "bin"))]  # fmt: skip
+    assert cameras[0] == cameras[1]
+    assert colmap_camera(*cameras[1][7], "room").distortion == (0.01, -0.002, 0.0, 0.0)
 
 
 def test_to_shards_script_dispatches_on_format(scene, chunk_reference, tmp_path, capsys):
@@ -518,36 +541,81 @@ def test_to_shards_script_dispatches_on_format(scene, chunk_reference, tmp_path,
     captured = capsys.readouterr()
     summary = json.loads(captured.out)
     assert summary["test"]["samples"] == 1 and summary["test"]["skips"] == {"missing_capture_file": 1}
-    assert captured.err.count("refused: empty:") == 1
+    assert captured.err.count("test/empty: skipped (missing_capture_file): empty:") == 1
     manifest = json.loads((tmp_path / "out" / "manifest.json").read_text())
-    assert manifest["capture"]["context_gap"] == 4 and manifest["config"]["size"] == 16
-    assert manifest["evaluation_samples"]["room"]["context"] == [1, 5]
-    assert manifest["evaluation_samples"]["room"]["target"] == [2, 4]
+    assert manifest["config"]["context_gap"] == 4 and manifest["config"]["size"] == 16
+    assert manifest["format"] == "colmap" and manifest["source_config"]["split"] == "test"
+    assert manifest["splits"]["test"]["evaluation_samples"]["room"]["context"] == [1, 5]
+    assert manifest["splits"]["test"]["evaluation_samples"]["room"]["target"] == [2, 4]
     with pytest.raises(SystemExit) as verdict:  # the chunk path's checksum verification reads this manifest too
         to_shards.main(["--verify", "--out", str(tmp_path / "out")])
     assert verdict.value.code == 0
-    with pytest.raises(SystemExit, match="^error: --eval-index picks test samples"):
+    with pytest.raises(SystemExit, match="^to_shards.py: --eval-index picks test samples"):
         to_shards.main(["--format", "colmap", "--src", str(tmp_path / "src"), "--out", str(tmp_path / "o2"),
                         "--split", "train", "--eval-index", str(tmp_path / "index.json")])  # fmt: skip
 
 
-def test_training_split_draws_gaps_over_the_range(scene, chunk_reference, tmp_path):
+def test_training_split_holds_whole_scenes_and_can_hold_some_out(scene, chunk_reference, tmp_path):
     s, _ = scene
     _, jpegs = chunk_reference
     c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
-    export_colmap(tmp_path / "src" / "room", jpegs, c2w, k, binary=True)
-    manifest = convert_captures(tmp_path / "src", tmp_path / "out", "colmap", size=16, split="train", min_gap=3,
-                                max_gap=6, samples_per_scene=3, train_targets=2, progress=False)  # fmt: skip
-    assert set(manifest["splits"]) == {"train"} and manifest["splits"]["train"]["samples"] == 3
-    assert manifest["evaluation_samples"] == {}
-    samples = dict(read_tar(tmp_path / "out" / "train" / "train-room.tar"))
-    assert sorted(samples) == ["room_000", "room_001", "room_002"]
-    gaps = []
-    for raw in samples.values():
-        meta = json.loads(raw["meta.json"])
-        (c0, c1), gaps = meta["context"], gaps + [meta["gap"]]
-        assert 3 <= c1 - c0 <= 6 and all(c0 < t < c1 for t in meta["target"]) and len(meta["target"]) == 2
-        np.testing.assert_allclose(
-            load(raw, "extrinsics.npy"), c2w[meta["context"] + meta["target"]], atol=1e-5
-        )
-    assert min(gaps) == 3
+    for name in ("room", "hall", "attic"):
+        export_colmap(tmp_path / "src" / name, jpegs, c2w, k, binary=True)
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", "colmap", size=16, split="train", min_gap=3,
+                               progress=False)  # fmt: skip
+    assert set(manifest["splits"]) == {"train"} and manifest["splits"]["train"]["frames"] == 3 * FRAMES
+    raw = dict(read_tar(tmp_path / "out" / "train" / "train-room.tar"))["room"]
+    assert json.loads(raw["meta.json"])["frames"] == list(range(FRAMES))
+    np.testing.assert_allclose(load(raw, "extrinsics.npy"), c2w, atol=1e-5)
+    held = convert_dataset(tmp_path / "src", tmp_path / "held", "colmap", size=16, split="train", min_gap=3,
+                           val_scenes=1, progress=False)  # fmt: skip
+    (key,) = held["splits"]["validation"]["held_out_from_train"]["scene_keys"]
+    assert held["splits"]["train"]["scenes"] == 2 and held["splits"]["validation"]["scenes"] == 1
+    assert key not in {k for s in held["splits"]["train"]["shards"] for k in s["scene_frames"]}
+
+
+# ------------------------------------------------------------------------------------------- hostile captures
+
+
+def test_a_capture_naming_files_outside_its_folder_is_refused(scene, chunk_reference, tmp_path):
+    s, _ = scene
+    _, jpegs = chunk_reference
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
+    secret = tmp_path / "src" / "secret.png"  # a file of the user's, beside the scene folders
+    src = tmp_path / "src" / "scenes"
+    for name, path in (("climbs", "../../secret.png"), ("absolute", str(secret))):
+        meta_path = export_nerfstudio(src / name, jpegs, c2w, k)
+        Image.open(io.BytesIO(jpegs[0])).save(secret)
+        meta = json.loads(meta_path.read_text())
+        meta["frames"][3]["file_path"] = path
+        meta_path.write_text(json.dumps(meta))
+    manifest = convert_dataset(src, tmp_path / "out", "nerfstudio", size=SIZE, context_gap=5, progress=False)
+    refused = manifest["splits"]["test"]["refused"]
+    assert manifest["splits"]["test"]["skips"] == {"path_outside_scene": 2}
+    assert "../../secret.png lies outside the scene folder" in refused["climbs"]
+    assert f"{secret} lies outside the scene folder" in refused["absolute"]
+    export_colmap(tmp_path / "colmap" / "room", jpegs, c2w, k, binary=False)
+    images = tmp_path / "colmap" / "room" / "sparse" / "0" / "images.txt"
+    images.write_text(images.read_text().replace("frame_00002.jpg", "../../../secret.png"))
+    manifest = convert_dataset(tmp_path / "colmap", tmp_path / "out2", "colmap", size=SIZE, context_gap=5,
+                               progress=False)  # fmt: skip
+    assert manifest["splits"]["test"]["skips"] == {"path_outside_scene": 1}
+    escaped = convert_dataset(
+        tmp_path / "colmap", tmp_path / "out3", "colmap", capture_path="../..", progress=False
+    )
+    assert "../.. lies outside the scene folder" in escaped["splits"]["test"]["refused"]["room"]
+
+
+def test_a_frame_listed_twice_is_refused(scene, chunk_reference, tmp_path):
+    """Two frames naming one image would let a context image also be a target."""
+    s, _ = scene
+    _, jpegs = chunk_reference
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
+    meta_path = export_nerfstudio(tmp_path / "src" / "room", jpegs, c2w, k)
+    meta = json.loads(meta_path.read_text())
+    meta["frames"].append({**meta["frames"][2], "file_path": "./" + meta["frames"][2]["file_path"]})
+    meta_path.write_text(json.dumps(meta))
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", "nerfstudio", size=SIZE, context_gap=5,
+                               progress=False)  # fmt: skip
+    assert manifest["splits"]["test"]["skips"] == {"duplicate_frames": 1}
+    assert "is listed twice" in manifest["splits"]["test"]["refused"]["room"]

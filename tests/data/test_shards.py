@@ -1,4 +1,5 @@
-"""Chunk -> shard conversion: round trip, real field layout, skipped scenes, resumability, manifest."""
+"""Chunk -> shard conversion: round trip, real field layout, skipped scenes, resumability, manifest, and what a
+careless or hostile input does (changed sources, a full disk, damaged manifests and indices, old shards)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,9 @@ import torch
 from PIL import Image
 
 from aesplat.data import DataModule, convert_dataset, verify_shards
-from aesplat.data.stream import read_tar
+from aesplat.data.stream import read_tar, sample_keys
 from aesplat.data.synthetic_scenes import render_scene, sample_scene
+from aesplat.errors import UserError
 from aesplat.geometry import project_points, unproject_depth
 
 H, W = 48, 64  # landscape source: the centre crop keeps columns 8..56
@@ -66,9 +68,10 @@ def test_round_trip_chunk_to_batch(tmp_path, scene):
     entry = chunk_entry("0a1b2c3d", images, c2w, k)
     evaluation = {"0a1b2c3d": {"context": [1, 6], "target": [2, 3, 5], "overlap": 0.5}}
     write_source(tmp_path / "src", [entry], [entry], evaluation)
-    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=SIZE, min_gap=3, max_gap=6,
-                               samples_per_scene=3, progress=False)  # fmt: skip
-    assert manifest["splits"]["test"]["samples"] == 1 and manifest["splits"]["train"]["samples"] == 3
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=SIZE, min_gap=3, progress=False)
+    assert manifest["version"] == 2 and manifest["splits"]["train"]["layout"] == "scenes"
+    assert manifest["splits"]["test"]["samples"] == 1 and manifest["splits"]["train"]["samples"] == 1
+    assert manifest["splits"]["train"]["frames"] == 8
 
     dm = DataModule(root=str(tmp_path / "out"), image_size=SIZE, num_workers=0)
     batch = next(iter(dm.eval_dataset()))
@@ -84,9 +87,7 @@ def test_round_trip_chunk_to_batch(tmp_path, scene):
     # Images: the source frame's centre crop, resized, within the tolerance of one more JPEG generation.
     got = torch.cat([batch.context.images, batch.target.images], 1)[0].permute(0, 2, 3, 1).float()
     for v, f in enumerate(frames):
-        source = Image.open(io.BytesIO(bytes(entry["images"][f].tolist())))
-        expect = np.array(source.crop((8, 0, 56, 48)).resize((SIZE, SIZE), Image.Resampling.BICUBIC))
-        error = (got[v] - torch.from_numpy(expect).float()).abs()
+        error = (got[v] - torch.from_numpy(expected_crop(entry, f)).float()).abs()
         assert error.mean() < 3.0 and error.max() < 40  # a crop one pixel off fails
 
     # Intrinsics: a 3D point lands on the same (cropped, scaled) pixel.
@@ -98,19 +99,50 @@ def test_round_trip_chunk_to_batch(tmp_path, scene):
     assert valid.any()
     assert torch.allclose(uv_out[valid], expected[valid], atol=1e-3)
 
-    # Training samples: gaps over the whole range (the smallest always present), targets between the context.
-    train = list(read_tar(next((tmp_path / "out" / "train").glob("*.tar"))))
-    gaps = []
-    for key, raw in train:
-        meta = json.loads(raw["meta.json"])
-        c0, c1 = meta["context"]
-        gaps.append(meta["gap"])
-        assert c1 - c0 == meta["gap"] and 3 <= meta["gap"] <= 6
-        assert all(c0 < t < c1 for t in meta["target"]) and len(meta["target"]) == 2 + (meta["gap"] > 3)
-        cams = np.load(io.BytesIO(raw["extrinsics.npy"]))
-        assert np.allclose(cams, c2w[meta["context"] + meta["target"]], atol=1e-5)
-        assert key.startswith("0a1b2c3d_")
-    assert min(gaps) == 3
+    # The training shard holds the whole scene: every frame, its camera and the cropped intrinsics.
+    (key, raw), *rest = list(read_tar(next((tmp_path / "out" / "train").glob("*.tar"))))
+    assert key == "0a1b2c3d" and rest == [] and next(iter(raw)) == "meta.json"  # meta first: cheap to probe
+    meta = json.loads(raw["meta.json"])
+    assert meta == {"scene": "0a1b2c3d", "dataset": "src", "frames": list(range(8)), "layout": "scene"}
+    assert np.allclose(np.load(io.BytesIO(raw["extrinsics.npy"])), c2w, atol=1e-5)
+    np.testing.assert_allclose(np.load(io.BytesIO(raw["intrinsics.npy"]))[frames], intr.numpy(), atol=1e-6)
+    offsets = np.load(io.BytesIO(raw["frames.offsets.npy"]))
+    assert offsets[0] == 0 and offsets[-1] == len(raw["frames.jpgs"]) and list(raw)[-1] == "frames.jpgs"
+    for f in range(8):
+        stored = Image.open(io.BytesIO(raw["frames.jpgs"][offsets[f] : offsets[f + 1]]))
+        assert np.abs(np.asarray(stored, dtype=np.float64) - expected_crop(entry, f)).mean() < 3.0
+
+    # Training draws its examples from it at run time, every frame a candidate.
+    train = DataModule(
+        root=str(tmp_path / "out"),
+        image_size=SIZE,
+        num_workers=0,
+        batch_size=4,
+        gap_initial=(3, 7),
+        gap_final=(3, 7),
+        train_batches_per_epoch=25,
+        shuffle_buffer=1,
+    )
+    drawn = [key for b in train.train_dataloader() for key in sample_keys(b)]
+    assert {f for _, frames in drawn for f in frames} == set(range(8))
+    assert {frames[1] - frames[0] for _, frames in drawn} == {3, 4, 5, 6, 7}
+    for b in train.train_dataloader():
+        views = torch.cat([b.context.index, b.target.index], 1)
+        extr = torch.cat([b.context.extrinsics, b.target.extrinsics], 1)
+        reflect = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+        for i in range(b.batch_size):
+            plain = s.extrinsics[views[i]]
+            assert torch.allclose(extr[i], plain, atol=1e-5) or torch.allclose(
+                extr[i], reflect @ plain @ reflect, atol=1e-5
+            )
+
+
+def expected_crop(entry: dict, frame: int) -> np.ndarray:
+    """The source frame's centre crop (columns 8..56 of the 64-wide frame) resized to SIZE, by PIL directly."""
+    source = Image.open(io.BytesIO(bytes(entry["images"][frame].tolist())))
+    return np.array(
+        source.crop((8, 0, 56, 48)).resize((SIZE, SIZE), Image.Resampling.BICUBIC), dtype=np.float64
+    )
 
 
 def test_webdataset_reads_the_shards(synthetic_shards):
@@ -120,8 +152,12 @@ def test_webdataset_reads_the_shards(synthetic_shards):
     sample = next(iter(wds.WebDataset(str(shard), shardshuffle=False)))
     assert {"ctx0.jpg", "ctx1.jpg", "tgt0.jpg", "extrinsics.npy", "intrinsics.npy", "meta.json"} <= set(sample)
     meta = json.loads(sample["meta.json"])
-    assert set(meta) == {"scene", "dataset", "context", "target", "gap", "overlap"}
-    assert meta["dataset"] == "synthetic"
+    assert set(meta) == {"scene", "dataset", "context", "target", "gap", "overlap", "extra", "context_views"}
+    assert meta["dataset"] == "synthetic" and meta["context_views"]["2"] == meta["context"]
+    shard = sorted((synthetic_shards / "train").glob("*.tar"))[0]
+    scene = next(iter(wds.WebDataset(str(shard), shardshuffle=False)))
+    assert {"frames.jpgs", "frames.offsets.npy", "extrinsics.npy", "intrinsics.npy", "meta.json"} <= set(scene)
+    assert len(np.load(io.BytesIO(scene["frames.offsets.npy"]))) == 12 + 1  # 12 frames
 
 
 def test_invalid_scenes_are_skipped_and_counted(tmp_path, scene):
@@ -147,12 +183,13 @@ def test_invalid_scenes_are_skipped_and_counted(tmp_path, scene):
     train = [good, wrong_shape, wide, static, corrupt, short, brief]
     test = [good, wide, chunk_entry("unindexed", images, c2w, k)]
     write_source(tmp_path / "src", train, test, evaluation)
-    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=4, max_gap=7,
-                               samples_per_scene=4, progress=False)  # fmt: skip
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=4, progress=False)
     tr, te = manifest["splits"]["train"], manifest["splits"]["test"]
     assert tr["skips"] == {"corrupt_image": 1, "degenerate_baseline": 1, "fov_too_wide": 1, "too_few_frames": 1,
-                           "wrong_shape": 1, "shorter_than_min_gap": 1}  # fmt: skip
-    assert tr["scenes"] == 1 and tr["scenes_seen"] == 7 and tr["samples"] == 4
+                           "mixed_image_sizes": 1, "shorter_than_min_gap": 1}  # fmt: skip
+    assert tr["scenes"] == 1 and tr["scenes_seen"] == 7 and tr["samples"] == 1
+    assert set(tr["refused"]) == {"wrongshape", "wide", "static", "corrupt", "short", "brief"}
+    assert all(message.startswith(f"{key}:") and "\n" not in message for key, message in tr["refused"].items())
     assert te["skips"] == {"fov_too_wide": 1, "not_in_evaluation_index": 1}
     assert te["samples"] == 1 and te["evaluation_index_missing"] == 1
     for split in ("train", "test"):
@@ -160,7 +197,7 @@ def test_invalid_scenes_are_skipped_and_counted(tmp_path, scene):
             assert len(shard["sha256"]) == 64
 
     # The same scenes pass when the limits allow them.
-    loose = convert_dataset(tmp_path / "src", tmp_path / "out2", size=16, min_gap=2, max_gap=7, max_fov_deg=130,
+    loose = convert_dataset(tmp_path / "src", tmp_path / "out2", size=16, min_gap=2, max_fov_deg=130,
                             progress=False)  # fmt: skip
     assert "fov_too_wide" not in loose["splits"]["train"]["skips"]
     strict = convert_dataset(tmp_path / "src", tmp_path / "out3", size=16, expect_shape=(H, W + 2),
@@ -170,16 +207,16 @@ def test_invalid_scenes_are_skipped_and_counted(tmp_path, scene):
 
 def test_conversion_resumes_and_verifies(tmp_path, synthetic_src):
     out = tmp_path / "out"
-    first = convert_dataset(synthetic_src, out, size=16, workers=2, samples_per_scene=2, progress=False)
+    first = convert_dataset(synthetic_src, out, size=16, workers=2, progress=False)
     shards = sorted((out / "train").glob("*.tar"))
     assert len(shards) >= 2 and verify_shards(out) == []
     stamps = {p.name: p.stat().st_mtime_ns for p in shards}
     shards[1].unlink()  # an interrupted run: one shard never finished
     (out / "train" / (shards[1].stem + ".tar.tmp")).write_bytes(b"partial")
     assert verify_shards(out) == [f"train/{shards[1].name}"]
-    again = convert_dataset(synthetic_src, out, size=16, workers=2, samples_per_scene=2, progress=False)
+    again = convert_dataset(synthetic_src, out, size=16, workers=2, progress=False)
     assert again["splits"] == first["splits"]
-    assert shards[1].exists() and verify_shards(out) == []
+    assert shards[1].exists() and verify_shards(out) == [] and not list(out.glob("*/*.tmp"))
     for p in shards[:1] + shards[2:]:
         assert p.stat().st_mtime_ns == stamps[p.name]  # finished shards were kept, not rewritten
 
@@ -188,19 +225,17 @@ def test_conversion_resumes_and_verifies(tmp_path, synthetic_src):
     shards[0].write_bytes(bytes(data))
     assert verify_shards(out) == [f"train/{shards[0].name}"]
     os.utime(shards[0])
-    convert_dataset(synthetic_src, out, size=16, workers=1, samples_per_scene=2, progress=False)
+    convert_dataset(synthetic_src, out, size=16, workers=1, progress=False)
     assert verify_shards(out) == []
 
     # Other options or another evaluation index: a different conversion, never a silent reuse.
-    other = convert_dataset(synthetic_src, out, size=20, samples_per_scene=2, progress=False)
+    other = convert_dataset(synthetic_src, out, size=20, progress=False)
     assert other["config"]["size"] == 20
     index = json.loads((synthetic_src / "evaluation_index.json").read_text())
     index[sorted(index)[0]] = None
     changed = tmp_path / "index.json"
     changed.write_text(json.dumps(index))
-    fewer = convert_dataset(
-        synthetic_src, out, size=20, samples_per_scene=2, eval_index=changed, progress=False
-    )
+    fewer = convert_dataset(synthetic_src, out, size=20, eval_index=changed, progress=False)
     assert fewer["splits"]["test"]["samples"] == other["splits"]["test"]["samples"] - 1
     assert fewer["splits"]["test"]["skips"] == {"not_in_evaluation_index": 1}
 
@@ -213,10 +248,10 @@ def test_command_line_scripts(tmp_path):
     subprocess.run(run, check=True, capture_output=True)
     assert (src / "train" / "index.json").exists() and (src / "evaluation_index.json").exists()
     convert = [sys.executable, str(root / "to_shards.py"), "--src", str(src), "--out", str(out), "--size", "14",
-               "--workers", "2", "--samples-per-scene", "2"]  # fmt: skip
+               "--workers", "2"]  # fmt: skip
     done = subprocess.run(convert, check=True, capture_output=True, text=True)
     summary = json.loads(done.stdout)
-    assert summary["train"]["samples"] == 4 and summary["test"]["samples"] == 1
+    assert summary["train"]["samples"] == 2 and summary["test"]["samples"] == 1
     assert json.loads((out / "manifest.json").read_text())["config"]["size"] == 14
     spec = importlib.util.spec_from_file_location("to_shards", root / "to_shards.py")
     to_shards = importlib.util.module_from_spec(spec)
@@ -227,6 +262,10 @@ def test_command_line_scripts(tmp_path):
         with pytest.raises(SystemExit) as verdict:
             to_shards.main(["--verify", "--out", str(out)])
         assert verdict.value.code == code
+    # Options of pre-drawn samples: one line saying what replaced them.
+    with pytest.raises(SystemExit) as verdict:
+        to_shards.main(["--src", str(src), "--out", str(tmp_path / "o2"), "--samples-per-scene", "8"])
+    assert verdict.value.code == 2 and not (tmp_path / "o2").exists()
     # A folder without a manifest: one line, no traceback, nothing written.
     with pytest.raises(SystemExit) as verdict:
         to_shards.main(["--verify", "--out", str(tmp_path / "src")])
@@ -246,18 +285,16 @@ def test_unreadable_chunk_is_counted_named_and_writes_no_shard(tmp_path, scene, 
     (tmp_path / "src" / "train" / "000001.torch").write_bytes(b"half a download")
     index = {"fine": "000000.torch", "lost": "000001.torch"}
     (tmp_path / "src" / "train" / "index.json").write_text(json.dumps(index))
-    manifest = convert_dataset(
-        tmp_path / "src", tmp_path / "out", size=16, min_gap=2, max_gap=6, progress=False
-    )
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=2, progress=False)
     assert manifest["splits"]["train"]["skips"] == {"corrupt_chunk": 1}
-    assert manifest["splits"]["train"]["samples"] == 8 and manifest["splits"]["test"]["samples"] == 1
+    assert manifest["splits"]["train"]["samples"] == 1 and manifest["splits"]["test"]["samples"] == 1
     err = capsys.readouterr().err
-    assert "to_shards: train/000001.torch: corrupt chunk, no shard written (cannot read chunk" in err
+    assert "to_shards: train/000001.torch: skipped (corrupt_chunk): cannot read chunk" in err
     assert sorted(p.name for p in (tmp_path / "out" / "train").iterdir()) == [
         "train-000000.json",
         "train-000000.tar",
     ]
-    assert [s["chunk"] for s in manifest["splits"]["train"]["shards"]] == ["000000.torch"]
+    assert [s["source"] for s in manifest["splits"]["train"]["shards"]] == ["000000.torch"]
     assert verify_shards(tmp_path / "out") == []
 
 
@@ -269,13 +306,11 @@ def test_skipped_scenes_are_named_on_stderr(tmp_path, scene, capsys):
     broken = chunk_entry("nan_camera", images, c2w, k)
     broken["cameras"][0, 0] = float("nan")
     write_source(tmp_path / "src", [fine, broken], [fine], {"fine": {"context": [0, 4], "target": [1, 2, 3]}})
-    manifest = convert_dataset(
-        tmp_path / "src", tmp_path / "out", size=16, min_gap=2, max_gap=6, progress=False
-    )
-    assert manifest["splits"]["train"]["skips"] == {"bad_camera": 1}
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=2, progress=False)
+    assert manifest["splits"]["train"]["skips"] == {"bad_intrinsics": 1}
     err = capsys.readouterr().err
-    assert "to_shards: train/000000.torch: scene nan_camera skipped (bad_camera)" in err
-    assert "scene fine" not in err
+    assert "to_shards: train/000000.torch: skipped (bad_intrinsics): nan_camera: a focal length" in err
+    assert "fine" not in err
 
 
 def test_missing_source_is_a_clear_error(tmp_path):
@@ -296,8 +331,8 @@ def test_test_samples_carry_highlight_masks(tmp_path, scene):
         name: {"context": [1, 6], "target": [2, 3, 5], "overlap": 0.5} for name in ("shiny", "matte", "old")
     }
     write_source(tmp_path / "src", [shiny], [shiny, matte, old], evaluation)
-    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=3, max_gap=6,
-                               specular_threshold=0.2, progress=False)  # fmt: skip
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=3, specular_threshold=0.2,
+                               progress=False)  # fmt: skip
 
     samples = dict(read_tar(next((tmp_path / "out" / "test").glob("*.tar"))))
     masks = {}
@@ -315,3 +350,174 @@ def test_test_samples_carry_highlight_masks(tmp_path, scene):
     assert manifest["splits"]["test"]["highlight_share"] == pytest.approx(12 / (6 * 16 * 16))
     for _, raw in read_tar(next((tmp_path / "out" / "train").glob("*.tar"))):  # training samples: no masks
         assert not any(n.endswith(".spec.png") for n in raw)
+
+
+# -------------------------------------------------------------------------------------------- careless inputs
+
+
+def load_to_shards():
+    root = Path(__file__).resolve().parents[2] / "data_prep"
+    spec = importlib.util.spec_from_file_location("to_shards", root / "to_shards.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def one_line_exit(main, argv: list[str]) -> str:
+    with pytest.raises(SystemExit) as verdict:
+        main(argv)
+    message = str(verdict.value)
+    assert verdict.value.code not in (0, None) and message.startswith("to_shards.py: ") and "\n" not in message
+    return message
+
+
+def test_a_changed_source_is_converted_again(tmp_path, scene):
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().expand(8, 3, 3).numpy()
+    write_source(tmp_path / "src", [chunk_entry("a", images, c2w, k)], [chunk_entry("a", images, c2w, k)],
+                 {"a": {"context": [1, 6], "target": [3]}})  # fmt: skip
+    convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=2, progress=False)
+    shard = tmp_path / "out" / "train" / "train-000000.tar"
+    kept = tmp_path / "out" / "test" / "test-000000.tar"
+    stamps = shard.stat().st_mtime_ns, kept.stat().st_mtime_ns
+    moved = c2w.copy()
+    moved[:, :3, 3] += 1.0  # the same scene re-exported with other poses: the chunk file changes
+    torch.save([chunk_entry("a", images, moved, k)], tmp_path / "src" / "train" / "000000.torch")
+    convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=2, progress=False)
+    assert shard.stat().st_mtime_ns != stamps[0] and kept.stat().st_mtime_ns == stamps[1]
+    raw = dict(read_tar(shard))["a"]
+    assert np.allclose(np.load(io.BytesIO(raw["extrinsics.npy"])), moved, atol=1e-5)  # not the stale poses
+
+
+def test_a_full_disk_leaves_no_temporary_file_and_is_one_line(tmp_path, synthetic_src, monkeypatch):
+    import errno
+    import tarfile
+
+    real = tarfile.TarFile.addfile
+    written = []
+
+    def fill_up(self, info, fileobj=None):
+        written.append(info.name)
+        if len(written) > 12:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, info, fileobj)
+
+    monkeypatch.setattr(tarfile.TarFile, "addfile", fill_up)
+    out = tmp_path / "out"
+    with pytest.raises(UserError, match="No space left on device; free space") as err:
+        convert_dataset(synthetic_src, out, size=16, progress=False)
+    assert f"cannot write {out}/" in str(err.value) and ".tar: No space" in str(err.value)
+    assert "\n" not in str(err.value)
+    assert not list(out.rglob("*.tmp")) and not (out / "manifest.json").exists()
+    written.clear()
+    message = one_line_exit(
+        load_to_shards().main, ["--src", str(synthetic_src), "--out", str(out), "--size", "16"]
+    )
+    assert "No space left on device" in message and not list(out.rglob("*.tmp"))
+    monkeypatch.setattr(tarfile.TarFile, "addfile", real)  # space again: the same command finishes the job
+    convert_dataset(synthetic_src, out, size=16, progress=False)
+    assert verify_shards(out) == []
+
+
+def test_damaged_manifest_and_malformed_indices_are_one_line(tmp_path, synthetic_src):
+    to_shards = load_to_shards().main
+    out = tmp_path / "out"
+    convert_dataset(synthetic_src, out, size=16, progress=False)
+    (out / "manifest.json").write_text('{"version": 2, "splits": {"train": ')
+    message = one_line_exit(to_shards, ["--verify", "--out", str(out)])
+    assert "manifest.json is damaged (not valid JSON" in message and "--src SRC --out" in message
+    (out / "manifest.json").write_text('{"version": 2, "splits": {"train": {"shards": [{"sha256": "x"}]}}}')
+    assert "lists a shard without a file name" in one_line_exit(to_shards, ["--verify", "--out", str(out)])
+    with pytest.raises(UserError, match="no `splits` object"):
+        (out / "manifest.json").write_text("[]")
+        DataModule(root=str(out), image_size=16).train_dataloader()
+
+    index = json.loads((synthetic_src / "evaluation_index.json").read_text())
+    key = sorted(index)[0]
+    bad_entries = {
+        "negative": ({"context": [-1, 5], "target": [2]}, "negative frame index (-1)"),
+        "not a list": ({"context": 3, "target": [2]}, "`context` must be a list of at least 2"),
+        "one context": ({"context": [3], "target": [2]}, "`context` must be a list of at least 2"),
+        "float": ({"context": [0, 5.5], "target": [2]}, "must hold whole numbers"),
+        "twice": ({"context": [0, 5], "target": [2, 2]}, "lists a frame twice"),
+        "both": ({"context": [0, 5], "target": [5]}, "frame 5 is both a context and a target"),
+        "string": ("0,5", "must be null or an object"),
+    }
+    for name, (entry, expected) in bad_entries.items():
+        path = tmp_path / f"{name.replace(' ', '_')}.json"
+        path.write_text(json.dumps({**index, key: entry}))
+        message = one_line_exit(to_shards, ["--src", str(synthetic_src), "--out", str(tmp_path / "x"),
+                                            "--eval-index", str(path)])  # fmt: skip
+        assert f"evaluation index {path}: entry {key!r}" in message and expected in message, (name, message)
+    (tmp_path / "broken.json").write_text("{not json")
+    assert "is not valid JSON" in one_line_exit(
+        to_shards,
+        [
+            "--src",
+            str(synthetic_src),
+            "--out",
+            str(tmp_path / "x"),
+            "--eval-index",
+            str(tmp_path / "broken.json"),
+        ],
+    )
+    assert not (tmp_path / "x").exists()  # refused before anything is written
+
+
+def test_evaluation_samples_carry_k_view_contexts_on_the_same_targets(tmp_path, scene):
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().expand(8, 3, 3).numpy()
+    entry = chunk_entry("room", images, c2w, k)
+    write_source(tmp_path / "src", [entry], [entry], {"room": {"context": [0, 7], "target": [2, 5]}})
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=SIZE, min_gap=2, eval_context_views=5,
+                               progress=False)  # fmt: skip
+    stated = manifest["splits"]["test"]["evaluation_samples"]["room"]
+    assert stated["context_views"] == {"2": [0, 7], "3": [0, 3, 7], "4": [0, 3, 4, 7], "5": [0, 1, 3, 6, 7]}
+    for views in (2, 3, 4, 5):
+        dm = DataModule(
+            root=str(tmp_path / "out"), image_size=SIZE, num_workers=0, eval_num_context_views=views
+        )
+        batch = next(iter(dm.test_dataloader()))
+        assert batch.context.index[0].tolist() == stated["context_views"][str(views)]
+        assert batch.target.index[0].tolist() == [2, 5]  # the same targets at every count
+        got = batch.context.images[0].permute(0, 2, 3, 1).float()
+        for v, f in enumerate(batch.context.index[0].tolist()):
+            assert torch.allclose(batch.context.extrinsics[0, v], s.extrinsics[f], atol=1e-5)
+            assert (got[v] - torch.from_numpy(expected_crop(entry, f)).float()).abs().mean() < 3.0
+    with pytest.raises(UserError, match="carry contexts of up to 5 views, not 6: convert again"):
+        DataModule(root=str(tmp_path / "out"), image_size=SIZE, eval_num_context_views=6).test_dataloader()
+
+
+def test_long_scenes_convert_whole_or_strided(tmp_path):
+    """A DL3DV-length scene (300 frames) becomes one training sample of 300 frames; --frame-stride 3 keeps
+    every third frame, and the stream draws from the kept ones."""
+    frames = 300
+    tile = (np.random.default_rng(0).random((H, W, 3)) * 255).astype(np.uint8)
+    c2w = np.tile(np.eye(4), (frames, 1, 1))
+    c2w[:, 0, 3] = np.linspace(0.0, 3.0, frames)  # a walk along x
+    k = np.tile(np.array([[0.9, 0, 0.5], [0, 1.2, 0.5], [0, 0, 1]]), (frames, 1, 1))
+    entry = chunk_entry("long", np.repeat(tile[None], frames, 0), c2w, k)
+    write_source(tmp_path / "src", [entry], [entry], {"long": {"context": [100, 160], "target": [130]}})
+    whole = convert_dataset(tmp_path / "src", tmp_path / "whole", size=8, min_gap=25, progress=False)
+    assert whole["splits"]["train"]["frames"] == frames
+    strided = convert_dataset(tmp_path / "src", tmp_path / "strided", size=8, min_gap=25, frame_stride=3,
+                              progress=False)  # fmt: skip
+    assert strided["splits"]["train"]["shards"][0]["scene_frames"] == {"long": 100}
+    meta = json.loads(dict(read_tar(tmp_path / "strided" / "train" / "train-000000.tar"))["long"]["meta.json"])
+    assert meta["frames"] == list(range(0, frames, 3))
+    dm = DataModule(
+        root=str(tmp_path / "strided"),
+        image_size=8,
+        num_workers=0,
+        batch_size=2,
+        gap_initial=(25, 45),
+        gap_final=(25, 45),
+        train_batches_per_epoch=4,
+        flip_augment=False,
+    )
+    for b in dm.train_dataloader():
+        assert torch.all(b.context.index % 3 == 0) and torch.all((b.gap >= 25) & (b.gap <= 45))
+        assert torch.equal(b.context.index[:, 1] - b.context.index[:, 0], 3 * b.gap)  # gaps count kept frames
+        assert torch.allclose(b.context.extrinsics[:, :, 0, 3], b.context.index.float() * 3.0 / (frames - 1))

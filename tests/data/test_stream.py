@@ -1,4 +1,5 @@
-"""Streaming: rank/worker splits, equal training lengths, corrupt data, curriculum, flips, resume."""
+"""Streaming: rank/worker splits, equal training lengths, corrupt data, the run-time view sampler and its
+curriculum, counts of context views, exact resume, flips, old and foreign shards."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import json
 import logging
 import shutil
 from collections import Counter
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,8 +17,9 @@ import torch
 
 from aesplat.data import DataModule, GapCurriculum, flip_views
 from aesplat.data.shards import write_tar
-from aesplat.data.stream import read_tar, sample_keys
+from aesplat.data.stream import StreamConfig, collate, decode_evaluation_sample, read_tar, sample_keys
 from aesplat.data.synthetic_scenes import render_scene, sample_scene
+from aesplat.errors import UserError
 from aesplat.geometry import project_points, unproject_depth
 
 from .conftest import SIZE
@@ -107,13 +110,18 @@ def test_training_streams_yield_equal_batches_per_rank(synthetic_shards):
                 assert torch.equal(b.gap, c1 - c0)
 
 
-def test_training_shards_are_split_by_rank(synthetic_shards):
+def test_training_scenes_are_split_by_rank_and_worker(synthetic_shards):
     split = []
     for rank in range(2):
         dm = module(synthetic_shards)
         dm.set_distributed(rank, 2)
-        split.append(dm.train_dataset().worker_shards(0, 1))
-    assert split[0] and split[1] and not set(split[0]) & set(split[1])
+        stream = dm.train_dataset()
+        split.append({s.key for s in stream.scenes})
+        workers = [{s.key for s in stream.worker_scenes(role, 2)} for role in range(2)]
+        assert (
+            workers[0] and workers[1] and not workers[0] & workers[1] and workers[0] | workers[1] == split[-1]
+        )
+    assert split[0] and split[1] and not split[0] & split[1] and len(split[0] | split[1]) == 6
 
 
 def corrupt_copy(src, dst):
@@ -143,13 +151,18 @@ def test_corrupt_shard_and_sample_are_skipped_counted_and_logged(synthetic_shard
 
 
 def test_corrupt_data_counters_reach_the_main_process_from_workers(synthetic_shards, tmp_path):
-    corrupt_copy(synthetic_shards, tmp_path)
-    shutil.copytree(tmp_path / "test", tmp_path / "train")
-    dm = module(tmp_path, num_workers=2, train_batches_per_epoch=4, batch_size=1, gap_final=(1, 20),
-                gap_initial=(1, 20))  # fmt: skip
-    assert len(list(dm.train_dataloader())) == 4  # the stream keeps going around the bad data
+    shutil.copytree(synthetic_shards, tmp_path / "shards")
+    shards = sorted((tmp_path / "shards" / "train").glob("*.tar"))
+    data = shards[0].read_bytes()
+    shards[0].write_bytes(data[: len(data) // 2 + 100])  # truncated after its first scene
+    scenes = list(read_tar(shards[1]))
+    blob = scenes[0][1]["frames.jpgs"]  # every frame of its first scene is garbage
+    scenes[0][1]["frames.jpgs"] = bytes(len(blob))
+    write_tar(shards[1], scenes)
+    dm = module(tmp_path / "shards", num_workers=2, train_batches_per_epoch=12, batch_size=1)
+    assert len(list(dm.train_dataloader())) == 12  # the stream keeps going around the bad data
     errors = dm.data_errors()
-    assert errors["train/corrupt_shards"] >= 1 or errors["train/corrupt_samples"] >= 1
+    assert errors["train/corrupt_shards"] >= 1 and errors["train/corrupt_samples"] >= 1
 
 
 def test_curriculum_ranges():
@@ -160,36 +173,164 @@ def test_curriculum_ranges():
         GapCurriculum(initial=(30, 20))
 
 
-def gaps_of(loader) -> set[int]:
-    return {g for b in loader for g in b.gap.tolist()}
+def gaps_of(loader) -> list[int]:
+    return [g for b in loader for g in b.gap.tolist()]
 
 
-def test_stream_yields_only_gaps_allowed_at_the_step(synthetic_shards):
-    dm = module(synthetic_shards, gap_initial=(2, 3), gap_final=(6, 8), gap_warmup_steps=100,
-                train_batches_per_epoch=6, num_workers=2)  # fmt: skip
+def test_sampled_gaps_follow_the_curriculum_at_several_steps(synthetic_shards):
+    dm = module(synthetic_shards, gap_initial=(2, 3), gap_final=(6, 14), gap_warmup_steps=1000, batch_size=8,
+                train_batches_per_epoch=12, num_workers=2)  # fmt: skip
     loader = dm.train_dataloader()
-    assert gaps_of(loader) <= {2, 3}
-    dm.set_global_step(100)  # the persistent workers read the step from shared memory
-    assert dm.allowed_gap() == (6, 8)
-    assert gaps_of(loader) <= {6, 7, 8}
-    dm.set_global_step(50)
-    lo, hi = dm.allowed_gap()
-    assert (lo, hi) == (4, 6) and gaps_of(loader) <= set(range(lo, hi + 1))
-    assert dm.data_errors()["train/curriculum_skipped"] > 0
+    for start, (lo, hi) in ((0, (2, 3)), (504, (4, 9)), (1008, (6, 14)), (12 * 10**5, (6, 14))):
+        dm.set_global_step(start)  # the persistent workers read the step from shared memory
+        assert dm.allowed_gap() == (lo, hi)
+        gaps = []
+        for step, b in enumerate(loader, start):
+            allowed = dm.curriculum.allowed(step)  # each batch is drawn for the step it is trained at
+            assert all(allowed[0] <= g <= min(allowed[1], 11) for g in b.gap.tolist())  # 12 frames: at most 11
+            gaps += b.gap.tolist()
+        assert set(gaps) == set(range(lo, min(hi, 11) + 1)), (start, sorted(set(gaps)))  # both bounds reached
+        assert max(Counter(gaps).values()) < 0.6 * len(gaps)  # not degenerate
+    assert dm.data_errors()["train/scene_too_short"] == 0
 
 
-def test_samples_with_too_few_targets_are_passed_over(synthetic_shards):
-    dm = module(synthetic_shards, num_target_views=2, train_batches_per_epoch=4)
-    for b in dm.train_dataloader():  # gap-2 samples hold a single target
-        assert b.target.images.shape[1] == 2
-        assert torch.all(b.target.index[:, 0] < b.target.index[:, 1])
-    assert dm.data_errors()["train/too_few_targets"] > 0 and dm.data_errors()["train/corrupt_samples"] == 0
+def test_batches_drawn_after_a_step_change_follow_the_step_they_are_trained_at(synthetic_shards):
+    dm = module(synthetic_shards, gap_initial=(2, 2), gap_final=(9, 9), gap_warmup_steps=6, batch_size=2,
+                train_batches_per_epoch=6)  # fmt: skip
+    for b, step in zip(dm.train_dataloader(), range(6)):
+        assert set(b.gap.tolist()) == {dm.curriculum.allowed(step)[0]}
 
 
-def test_unsatisfiable_curriculum_is_a_clear_error(synthetic_shards):
-    dm = module(synthetic_shards, gap_initial=(50, 60), gap_final=(50, 60))
-    with pytest.raises(RuntimeError, match="curriculum"):
-        next(iter(dm.train_dataloader()))
+@pytest.mark.parametrize("count", [2, 3, 4, 5, 6])
+def test_k_context_views_in_batches(synthetic_shards, count):
+    dm = module(synthetic_shards, num_context_views=count, num_target_views=2, gap_initial=(2, 11),
+                gap_final=(2, 11), train_batches_per_epoch=6, batch_size=3)  # fmt: skip
+    for b in dm.train_dataloader():
+        ctx, tgt = b.context.index, b.target.index
+        assert ctx.shape == (3, count) and tgt.shape == (3, 2) and b.context.images.shape[1] == count
+        assert torch.all(ctx[:, 1:] > ctx[:, :-1]) and torch.all(ctx >= 0) and torch.all(ctx < 12)
+        assert torch.all((tgt > ctx[:, :1]) & (tgt < ctx[:, -1:])) and torch.all(tgt[:, 1] > tgt[:, 0])
+        assert not any(set(t) & set(c) for t, c in zip(tgt.tolist(), ctx.tolist()))
+
+
+def test_a_range_of_counts_draws_one_count_per_batch_from_seed_and_step(synthetic_shards):
+    dm = module(synthetic_shards, num_context_views=(2, 5), gap_initial=(2, 11), gap_final=(2, 11),
+                train_batches_per_epoch=24, num_workers=2)  # fmt: skip
+    assert dm.num_context_views == (2, 5)  # as given, for the model to check its appearance head against
+    counts = [b.context.num_views for b in dm.train_dataloader()]
+    assert counts == [dm.context_views.at(dm.seed, step) for step in range(24)] and set(counts) == {2, 3, 4, 5}
+
+
+def test_scenes_too_short_or_too_tight_are_skipped_counted_and_named(tmp_path, caplog):
+    from aesplat.data import convert_dataset, generate_dataset
+
+    for frames, seed in ((6, 1), (14, 2)):
+        generate_dataset(
+            tmp_path / f"src{frames}",
+            scenes=2,
+            test_scenes=1,
+            val_scenes=0,
+            frames=frames,
+            height=16,
+            width=24,
+            seed=seed,
+            scenes_per_chunk=2,
+        )
+    (tmp_path / "src6" / "train" / "000000.torch").rename(tmp_path / "src14" / "train" / "000009.torch")
+    index = json.loads((tmp_path / "src14" / "train" / "index.json").read_text())
+    index.update(
+        {k: "000009.torch" for k in json.loads((tmp_path / "src6" / "train" / "index.json").read_text())}
+    )
+    (tmp_path / "src14" / "train" / "index.json").write_text(json.dumps(index))
+    convert_dataset(tmp_path / "src14", tmp_path / "out", size=16, min_gap=2, progress=False)
+    dm = module(tmp_path / "out", image_size=16, gap_initial=(7, 12), gap_final=(7, 12), batch_size=2,
+                train_batches_per_epoch=6)  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="aesplat.data"):
+        gaps = gaps_of(dm.train_dataloader())
+    assert min(gaps) >= 7 and max(gaps) <= 12
+    assert dm.data_errors()["train/scene_too_short"] > 0  # 6-frame scenes: no gap of 7
+    assert "skipping scene train001_00000 (6 frames)" in caplog.text and "scene_too_short" in caplog.text
+    # Long enough for the gap, too few frames between for 4 context and 3 target views (they need a gap of 6).
+    caplog.clear()
+    tight = module(tmp_path / "out", image_size=16, gap_initial=(5, 6), gap_final=(5, 6), num_context_views=4,
+                   num_target_views=3, batch_size=2, train_batches_per_epoch=6)  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="aesplat.data"):
+        assert set(gaps_of(tight.train_dataloader())) == {6}
+    assert (
+        tight.data_errors()["train/too_few_between"] > 0 and tight.data_errors()["train/scene_too_short"] == 0
+    )
+    assert "(6 frames) at step" in caplog.text and "too_few_between" in caplog.text
+
+
+def test_a_split_with_no_usable_scene_is_one_line(synthetic_shards):
+    for options, where in (
+        ({"gap_initial": (50, 60), "gap_final": (50, 60)}, "at step 0"),
+        ({"gap_initial": (2, 8), "gap_final": (20, 30), "gap_warmup_steps": 160}, "at step 90"),
+        ({"num_context_views": 6, "num_target_views": 6}, "at step 0"),
+    ):
+        with pytest.raises(UserError, match=f"no training scene in .* gives an example {where}") as err:
+            module(synthetic_shards, **options).train_dataloader()
+        assert "\n" not in str(err.value) and "scenes have 12..12 frames" in str(err.value)
+
+
+def test_resume_mid_epoch_draws_the_same_views_as_an_uninterrupted_run(synthetic_shards):
+    def run(step: int, workers: int) -> list[tuple]:
+        dm = module(synthetic_shards, num_workers=workers, train_batches_per_epoch=8, num_context_views=(2, 3),
+                    gap_initial=(2, 4), gap_final=(4, 11), gap_warmup_steps=10, flip_augment=True)  # fmt: skip
+        dm.set_global_step(step)
+        return [(sample_keys(b), b.context.images.clone(), b.context.extrinsics.clone()) for b in
+                dm.train_dataloader()]  # fmt: skip
+
+    for workers in (0, 2):
+        whole = run(8, workers)  # the second epoch (steps 8..15), uninterrupted
+        resumed = run(11, workers)  # stopped after step 10, resumed at 11
+        assert len(whole) == 8 and len(resumed) == 5
+        for (keys, images, extr), (keys_r, images_r, extr_r) in zip(whole[3:], resumed):
+            assert keys == keys_r and torch.equal(images, images_r) and torch.equal(extr, extr_r)
+    assert [k for k, _, _ in run(8, 0)] != [k for k, _, _ in run(0, 0)]  # another epoch, other views
+
+
+def test_examples_per_scene_reads_each_scene_once_for_several_examples(synthetic_shards, monkeypatch):
+    from aesplat.data import stream
+
+    reads = []
+    real = stream.index_scenes
+
+    def counting(path):
+        for entry in real(path):
+            reads.append(entry.key)
+            yield entry
+
+    monkeypatch.setattr(stream, "index_scenes", counting)
+    drawn = {}
+    for per_scene in (1, 4):
+        reads.clear()
+        dm = module(synthetic_shards, examples_per_scene=per_scene, batch_size=4, train_batches_per_epoch=12,
+                    shuffle_buffer=8, gap_initial=(2, 11), gap_final=(2, 11))  # fmt: skip
+        drawn[per_scene] = [k for b in dm.train_dataloader() for k in sample_keys(b)]
+        assert len(drawn[per_scene]) == 48
+        ratio = len(drawn[per_scene]) / len(reads)
+        assert (0.8 <= ratio <= 1.2) if per_scene == 1 else ratio > 2.5, (per_scene, ratio)
+    assert len(set(drawn[4])) > 0.8 * len(drawn[4])  # the examples of one read differ in their views
+
+
+def test_a_fixed_pool_reuses_few_examples_per_scene(synthetic_shards):
+    def contexts(**options) -> dict[str, set]:
+        dm = module(synthetic_shards, batch_size=4, train_batches_per_epoch=30, **options)
+        seen: dict[str, set] = {}
+        for b in dm.train_dataloader():
+            for scene, ctx in zip(b.scene, b.context.index.tolist()):
+                seen.setdefault(scene, set()).add(tuple(ctx))
+        return seen
+
+    pooled, fresh = contexts(fixed_pool=2), contexts()
+    assert all(len(c) <= 2 for c in pooled.values()) and len(pooled) == 6
+    assert max(len(c) for c in fresh.values()) > 4
+    # The first phase of the curriculum allows only the pool's smallest-gap member: one example per scene.
+    early = contexts(fixed_pool=8, gap_initial=(2, 2), gap_final=(2, 8), gap_warmup_steps=10**6)
+    assert all(len(c) == 1 and next(iter(c))[1] - next(iter(c))[0] == 2 for c in early.values())
+    with pytest.raises(UserError, match="fixed_pool draws its examples once"):
+        module(synthetic_shards, fixed_pool=2, num_context_views=(2, 3))
 
 
 def test_state_dict_restores_the_curriculum(synthetic_shards):
@@ -248,10 +389,9 @@ def test_flip_augment_flips_some_training_samples_consistently(synthetic_shards)
     for shard in sorted((synthetic_shards / "train").glob("*.tar")):
         for _, raw in read_tar(shard):
             meta = json.loads(raw["meta.json"])
-            frames = meta["context"] + meta["target"]
             cams = np.load(io.BytesIO(raw["extrinsics.npy"]))
             ks = np.load(io.BytesIO(raw["intrinsics.npy"]))
-            for f, c, k in zip(frames, cams, ks):
+            for f, c, k in zip(meta["frames"], cams, ks):
                 source[(meta["scene"], f)] = (torch.from_numpy(c), torch.from_numpy(k))
     reflect = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
     flipped = plain = 0
@@ -295,41 +435,154 @@ def test_eval_batches_carry_the_highlight_masks(synthetic_shards):
 
 
 def test_highlight_is_none_without_masks_and_mixed_batches_are_an_error(synthetic_shards, tmp_path):
-    from aesplat.data.stream import StreamConfig, collate, decode_sample
-
     key, raw = next(read_tar(sorted((synthetic_shards / "test").glob("*.tar"))[0]))
     cfg = StreamConfig(image_size=SIZE, batch_size=2, num_target_views=None)
-    with_mask = decode_sample(key, raw, cfg, None)
-    bare = decode_sample(key, {k: v for k, v in raw.items() if not k.endswith(".spec.png")}, cfg, None)
-    assert bare["highlight"] is None and collate([bare, bare], cfg).highlight is None
-    assert collate([with_mask, with_mask], cfg).highlight.shape[:2] == (2, 3)
+    with_mask = decode_evaluation_sample(raw, cfg)
+    bare = decode_evaluation_sample({k: v for k, v in raw.items() if not k.endswith(".spec.png")}, cfg)
+    assert bare.highlight is None and collate([bare, bare]).highlight is None
+    assert collate([with_mask, with_mask]).highlight.shape[:2] == (2, 3)
     with pytest.raises(ValueError, match="highlight masks"):
-        collate([with_mask, bare], cfg)
+        collate([with_mask, bare])
 
 
-def test_a_flipped_sample_flips_its_masks(synthetic_shards):
-    from aesplat.data.stream import StreamConfig, decode_sample
-
-    key, raw = next(read_tar(sorted((synthetic_shards / "test").glob("*.tar"))[0]))
-    raw = dict(raw)
-    raw["tgt0.spec.png"] = raw["tgt1.spec.png"] = raw["tgt2.spec.png"] = _png_left_half()
-    flips = StreamConfig(image_size=SIZE, batch_size=1, num_target_views=3, flip_augment=True)
-    seen = set()
-    for seed in range(8):
-        sample = decode_sample(key, raw, flips, np.random.default_rng(seed))
-        plain = decode_sample(key, raw, StreamConfig(image_size=SIZE, batch_size=1, num_target_views=3), None)
-        flipped = not torch.equal(sample["images"], plain["images"])
-        assert torch.equal(sample["images"], plain["images"].flip(-1) if flipped else plain["images"])
-        assert torch.equal(sample["highlight"], plain["highlight"].flip(-1) if flipped else plain["highlight"])
-        seen.add(flipped)
-    assert seen == {True, False}
+# ------------------------------------------------------------------------------------- old and foreign shards
 
 
-def _png_left_half() -> bytes:
-    from PIL import Image
+def old_layout_copy(src, dst) -> None:
+    """The shards as the conversion wrote them before training drew its views at run time: manifest version 1,
+    every split of pre-drawn samples (ctx0, ctx1, tgt0..., meta without extra contexts)."""
+    dst.mkdir()
+    manifest = json.loads((src / "manifest.json").read_text())
+    manifest["version"] = 1
+    for split, entry in manifest["splits"].items():
+        for key in ("layout", "context_views", "evaluation_samples", "frames"):
+            entry.pop(key, None)
+        (dst / split).mkdir()
+        for shard in entry["shards"]:
+            samples = []
+            for key, raw in read_tar(src / split / shard["shard"]):
+                meta = json.loads(raw["meta.json"])
+                if split == "train":  # one pre-drawn sample per scene: frames 0, 4 and 2 between
+                    frames = [0, 4, 2]
+                    cams = [np.load(io.BytesIO(raw[n]))[frames] for n in ("extrinsics.npy", "intrinsics.npy")]
+                    at = np.load(io.BytesIO(raw["frames.offsets.npy"]))
+                    jpeg = [raw["frames.jpgs"][at[f] : at[f + 1]] for f in frames]
+                    raw = {
+                        "ctx0.jpg": jpeg[0],
+                        "ctx1.jpg": jpeg[1],
+                        "tgt0.jpg": jpeg[2],
+                        "extrinsics.npy": _npy(cams[0]),
+                        "intrinsics.npy": _npy(cams[1]),
+                    }
+                    meta = {
+                        "scene": meta["scene"],
+                        "dataset": meta["dataset"],
+                        "context": [0, 4],
+                        "target": [2],
+                        "gap": 4,
+                        "overlap": None,
+                    }
+                else:
+                    n = len(meta["context"]) + len(meta["target"])
+                    raw = {k: v for k, v in raw.items() if not k.startswith("xtr")}
+                    raw["extrinsics.npy"] = _npy(np.load(io.BytesIO(raw["extrinsics.npy"]))[:n])
+                    raw["intrinsics.npy"] = _npy(np.load(io.BytesIO(raw["intrinsics.npy"]))[:n])
+                    meta = {k: meta[k] for k in ("scene", "dataset", "context", "target", "gap", "overlap")}
+                samples.append(
+                    (f"{key}_000" if split == "train" else key, {**raw, "meta.json": json.dumps(meta).encode()})
+                )
+            write_tar(dst / split / shard["shard"], samples)
+    (dst / "manifest.json").write_text(json.dumps(manifest))
 
-    mask = np.zeros((SIZE, SIZE), np.uint8)
-    mask[:, : SIZE // 2] = 255
+
+def _npy(array) -> bytes:
     buf = io.BytesIO()
-    Image.fromarray(mask).save(buf, format="PNG")
+    np.save(buf, array)
     return buf.getvalue()
+
+
+def test_old_sample_shards_still_evaluate_and_are_refused_for_training_with_the_command(
+    synthetic_shards, tmp_path
+):
+    old = tmp_path / "old"
+    old_layout_copy(synthetic_shards, old)
+    dm = module(old)
+    with pytest.raises(UserError) as err:
+        dm.train_dataloader()
+    message = str(err.value)
+    assert "pre-drawn samples (manifest version 1)" in message and "\n" not in message
+    assert f"python data_prep/to_shards.py --src {json.loads((old / 'manifest.json').read_text())['source']} " \
+        f"--out {old} --size {SIZE}" in message  # fmt: skip
+    new = [(sample_keys(b), b.target.images) for b in module(synthetic_shards).test_dataloader()]
+    assert [(sample_keys(b), b.target.images) for b in module(old).test_dataloader()].__len__() == len(new)
+    for (keys, images), (keys_old, images_old) in zip(
+        new, [(sample_keys(b), b.target.images) for b in module(old).test_dataloader()]
+    ):
+        assert keys == keys_old and torch.equal(images, images_old)  # the same test figures as before
+    with pytest.raises(UserError, match="carry contexts of up to 2 views, not 3"):
+        module(old, eval_num_context_views=3).test_dataloader()
+
+
+def test_tars_that_are_not_shards_are_refused(tmp_path):
+    import tarfile
+
+    (tmp_path / "test").mkdir()
+    with tarfile.open(tmp_path / "test" / "photos.tar", "w") as tar:
+        data = b"\xff\xd8 holiday"
+        info = tarfile.TarInfo("holiday/beach.jpg")
+        info.size = len(data)
+        tar.addfile(info, io.BytesIO(data))
+    with pytest.raises(
+        UserError, match="photos.tar is not a shard of aesplat .its first sample beach has no meta"
+    ):
+        module(tmp_path).test_dataloader()
+    from aesplat import cli
+
+    with pytest.raises(SystemExit) as verdict:  # `aesplat test` says so in one line instead of 0 scenes
+        cli.main(
+            [
+                "test",
+                "-c",
+                str(Path(__file__).resolve().parents[2] / "conf" / "smoke.yaml"),
+                "--data.root",
+                str(tmp_path),
+                "--trainer.default_root_dir",
+                str(tmp_path / "run"),
+            ]
+        )
+    assert str(verdict.value).startswith("aesplat test: ") and "is not a shard of aesplat" in str(verdict.value)
+    assert "\n" not in str(verdict.value) and not (tmp_path / "run").exists()
+    (tmp_path / "test" / "photos.tar").write_bytes(b"not a tar at all" * 100)
+    with pytest.raises(UserError, match="not a readable tar archive"):
+        module(tmp_path).test_dataloader()
+
+
+def test_ddp_ranks_never_draw_the_same_scene_in_an_epoch(synthetic_shards, tmp_path):
+    """Two gloo processes, each building its rank's stream as under a DDP Trainer: their scenes are disjoint."""
+    import torch.multiprocessing as mp
+
+    mp.spawn(_ddp_rank, args=(str(synthetic_shards), str(tmp_path)), nprocs=2, join=True)
+    seen = [set(json.loads((tmp_path / f"rank{r}.json").read_text())) for r in range(2)]
+    assert seen[0] and seen[1] and not seen[0] & seen[1]
+
+
+def _ddp_rank(rank: int, root: str, out: str) -> None:
+    import os
+
+    import torch.distributed as dist
+
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(29500 + os.getppid() % 1000))
+    dist.init_process_group("gloo", rank=rank, world_size=2)
+    try:
+        dm = module(root, num_workers=2, train_batches_per_epoch=6, batch_size=3)
+        dm.trainer = SimpleNamespace(
+            global_rank=dist.get_rank(), world_size=dist.get_world_size(), global_step=0
+        )
+        dm.setup("fit")
+        scenes = [s for b in dm.train_dataloader() for s in b.scene]
+        gathered: list = [None, None]
+        dist.all_gather_object(gathered, scenes)
+        assert len(gathered[1 - rank]) == len(scenes) == 18  # every rank the same number of batches
+        Path(out, f"rank{rank}.json").write_text(json.dumps(sorted(set(scenes))))
+    finally:
+        dist.destroy_process_group()

@@ -14,6 +14,7 @@ import torch
 from aesplat.data import DataModule, convert_dataset, generate_dataset
 from aesplat.data.chunks import list_chunks, load_chunk
 from aesplat.data.shards import held_out_keys
+from aesplat.errors import UserError
 from aesplat.train.curves import CURVE_COLUMNS
 
 from ..script_loader import load_benchmark, load_script
@@ -68,13 +69,45 @@ def test_synthetic_validation_split_converts_with_its_index_and_the_datamodule_v
     assert batch.target.index[0].tolist() == index[batch.scene[0]]["target"]
 
 
-def test_without_a_validation_split_validation_falls_back_to_test_with_a_warning(tmp_path, caplog):
+def test_without_a_validation_split_validation_is_refused_unless_the_test_split_is_asked_for(tmp_path, caplog):
     generate_dataset(tmp_path / "src", scenes=2, test_scenes=1, val_scenes=0, **TINY)
     convert_dataset(tmp_path / "src", tmp_path / "out", size=16, progress=False)
     dm = DataModule(root=str(tmp_path / "out"), image_size=16, num_workers=0)
+    with pytest.raises(UserError) as err:
+        dm.eval_dataset("val")
+    message = str(err.value)
+    assert "has no validation split" in message and "--val-scenes N" in message and "\n" not in message
+    assert "--data.validate_on_test true" in message
+    asked = DataModule(root=str(tmp_path / "out"), image_size=16, num_workers=0, validate_on_test=True)
     with caplog.at_level(logging.WARNING, logger="aesplat.data"):
-        assert [s for b in dm.eval_dataset("val") for s in b.scene] == ["test003_00000"]
-    assert "no validation split" in caplog.text and "--val-scenes" in caplog.text
+        assert [s for b in asked.eval_dataset("val") for s in b.scene] == ["test003_00000"]
+    assert "data.validate_on_test: validating on the TEST split" in caplog.text  # the logs name it
+
+
+def test_aesplat_fit_without_a_validation_split_is_refused_before_anything_is_written(tmp_path):
+    from aesplat import cli
+
+    generate_dataset(tmp_path / "src", scenes=2, test_scenes=1, val_scenes=0, **TINY)
+    convert_dataset(tmp_path / "src", tmp_path / "out", size=16, progress=False)
+    run = tmp_path / "run"
+    argv = [
+        "fit",
+        "-c",
+        str(ROOT / "conf" / "smoke.yaml"),
+        "--data.root",
+        str(tmp_path / "out"),
+        "--data.image_size",
+        "16",
+        "--data.validate_on_test",
+        "false",
+        "--trainer.default_root_dir",
+        str(run),
+    ]
+    with pytest.raises(SystemExit) as verdict:  # SystemExit(message): printed on stderr, exit status 1
+        cli.main(argv)
+    err = str(verdict.value)
+    assert err.startswith("aesplat fit: ") and "has no validation split" in err and "\n" not in err
+    assert not run.exists()
 
 
 def test_to_shards_val_scenes_holds_out_training_scenes_deterministically(tmp_path):
@@ -88,7 +121,7 @@ def test_to_shards_val_scenes_holds_out_training_scenes_deterministically(tmp_pa
         s["sha256"] for s in b["splits"]["train"]["shards"]
     ]
     assert a["splits"]["train"]["scenes"] == 3 and a["splits"]["validation"]["scenes"] == 2
-    assert a["splits"]["train"]["samples"] + 8 * 2 == whole["splits"]["train"]["samples"]
+    assert a["splits"]["train"]["samples"] + 2 == whole["splits"]["train"]["samples"]
     dm = DataModule(root=str(tmp_path / "a"), image_size=16, num_workers=0)
     assert sorted(s for batch in dm.eval_dataset("val") for s in batch.scene) == keys
     trained = {r for shard in (tmp_path / "a" / "train").glob("*.json") for r in json.loads(shard.read_text())
@@ -107,7 +140,7 @@ def test_to_shards_val_scenes_refuses_what_does_not_fit(tmp_path, capsys):
     to_shards = load_script("to_shards", ROOT / "data_prep")
     with pytest.raises(SystemExit, match="already has a validation/ split"):
         to_shards.main(["--src", str(tmp_path / "src"), "--out", str(tmp_path / "o"), "--val-scenes", "1"])
-    with pytest.raises(ValueError, match="leave some to train on"):
+    with pytest.raises(UserError, match="leave some to train on"):
         held_out_keys(["a", "b"], 2, 0)
 
 

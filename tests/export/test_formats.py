@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from aesplat.data.captures import capture_cameras, read_colmap, read_nerfstudio
+from aesplat.data.sources.colmap import read_colmap
+from aesplat.data.sources.nerfstudio import read_nerfstudio
 from aesplat.errors import UserError
 from aesplat.export import (
     PredictedScene,
@@ -53,11 +54,10 @@ def random_scene(tmp_path, views: int = 3, n: int = 40) -> PredictedScene:
 
 
 def assert_same_cameras(capture, scene: PredictedScene) -> None:
-    c2w, intr = capture_cameras(capture)
     assert [Path(name).name for name in capture.names] == [p.name for p in scene.images]
-    np.testing.assert_allclose(c2w, scene.extrinsics.double().numpy(), atol=1e-5, rtol=0)
-    np.testing.assert_allclose(intr, scene.intrinsics.double().numpy(), atol=1e-5, rtol=0)
-    for path, src in zip(capture.paths, scene.images):
+    np.testing.assert_allclose(capture.c2w, scene.extrinsics.double().numpy(), atol=1e-5, rtol=0)
+    np.testing.assert_allclose(capture.intrinsics, scene.intrinsics.double().numpy(), atol=1e-5, rtol=0)
+    for path, src in zip(capture.files, scene.images):
         assert path.read_bytes() == src.read_bytes()
 
 

@@ -1,13 +1,14 @@
-"""Data: synthetic scenes, chunk -> shard conversion, shard streaming and the DataModule (docs/data.md).
+"""Data: synthetic scenes, the conversion pipeline (a reader per source format, one shard writer), the run-time
+view sampler, shard streaming and the DataModule (docs/data.md).
 
 ``DataModule`` is imported lazily: the data-preparation scripts never pay for importing Lightning.
 """
 
 from typing import TYPE_CHECKING
 
-from .capture_shards import convert_captures
 from .curriculum import GapCurriculum
-from .shards import convert_dataset, verify_shards
+from .manifest import read_manifest, verify_shards
+from .shards import convert_dataset
 from .stream import flip_views
 from .synthetic_scenes import generate_dataset, render_scene, sample_scene
 
@@ -17,10 +18,10 @@ if TYPE_CHECKING:
 __all__ = [
     "DataModule",
     "GapCurriculum",
-    "convert_captures",
     "convert_dataset",
     "flip_views",
     "generate_dataset",
+    "read_manifest",
     "render_scene",
     "sample_scene",
     "verify_shards",

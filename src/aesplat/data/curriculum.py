@@ -28,6 +28,10 @@ class GapCurriculum:
         hi = round(self.initial[1] + (self.final[1] - self.initial[1]) * t)
         return lo, max(lo, hi)
 
+    def span(self) -> tuple[int, int]:
+        """Every gap the curriculum allows at some step: [smallest lo, largest hi]."""
+        return min(self.initial[0], self.final[0]), max(self.initial[1], self.final[1])
+
     def accepts(self, gap: int, step: int) -> bool:
         lo, hi = self.allowed(step)
         return lo <= gap <= hi

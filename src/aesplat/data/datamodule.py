@@ -9,7 +9,6 @@ same by hand. ``state_dict`` / ``load_state_dict`` carry the step (and seed) thr
 
 from __future__ import annotations
 
-import json
 import logging
 import warnings
 from pathlib import Path
@@ -19,9 +18,22 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader
 
-from ..errors import MissingFileError
+from ..errors import UserError
 from .curriculum import GapCurriculum
-from .stream import EvalStream, StreamConfig, TrainStream, counter_totals, new_counters
+from .manifest import SceneRef, find_shards, has_split, read_manifest, training_scenes
+from .sampler import ContextCount, fixed_pool, scene_seed
+from .stream import (
+    POOL_TARGETS,
+    EvalStream,
+    StreamConfig,
+    TrainStream,
+    counter_totals,
+    new_counters,
+    partition,
+    usable_at,  # fmt: skip
+)
+
+__all__ = ["DataModule", "find_shards", "has_split", "validation_split"]
 
 log = logging.getLogger("aesplat.data")
 # Lightning warns that an IterableDataset's __len__ may be wrong with several workers; ours is exact by
@@ -32,9 +44,10 @@ warnings.filterwarnings("ignore", message=r".*Your `IterableDataset` has `__len_
 class DataModule(L.LightningDataModule):
     """Context/target batches streamed from ``root/{train,validation,test}/*.tar`` (``data_prep/to_shards.py``).
 
-    Validation (and with it the "best" checkpoint) uses the ``validation`` split; the ``test`` split only
-    when the shards have no validation split, with a warning that checkpoint selection then sees the test
-    scenes (``to_shards.py --val-scenes N`` makes one; see docs/validation.md).
+    Training draws every example at run time from whole scenes (docs/data.md). Validation (and with it the
+    "best" checkpoint) uses the ``validation`` split; shards without one are refused for validation unless
+    ``validate_on_test`` asks for the test split by name (``to_shards.py --val-scenes N`` makes one; see
+    docs/validation.md).
 
     Args:
         root: shard folder holding ``train/``, ``validation/`` and ``test/`` (and ``manifest.json``).
@@ -42,14 +55,26 @@ class DataModule(L.LightningDataModule):
             of 14 for the ViT patch size).
         batch_size / eval_batch_size: samples per training / evaluation batch (per rank).
         num_workers: DataLoader worker processes per rank.
-        num_context_views, num_target_views: views per training sample (evaluation uses every target of the
-            evaluation index unless ``eval_num_target_views`` is set).
+        num_context_views: context views per training example: a number, or a range [lo, hi] from which each
+            batch draws its count (all its samples share it; deterministic from the seed and the step).
+        num_target_views: target views per training example, drawn between the outer context views.
         gap_initial, gap_final, gap_warmup_steps: the view-gap curriculum (allowed context gap range in frames
             at step 0 and after the warm-up; paper: 25 -> 90).
+        min_target_distance: frames a training target keeps from the outer context views, at least (>= 1).
+        examples_per_scene: training examples drawn from each scene read, each with its own views, entering the
+            shuffle buffer separately (fewer reads per example; more repetition within a buffer).
+        fixed_pool: 0 draws every training example afresh; N > 0 draws N examples per scene once (seeded by
+            ``seed`` and the scene) and reuses them, as pre-drawn samples would (for comparisons).
         flip_augment: mirror half of the training samples, cameras included.
         train_batches_per_epoch: batches every rank yields per training epoch (the stream itself is infinite).
-        shuffle_buffer: samples held per worker for shuffling.
-        seed: base seed of the training streams.
+        eval_num_target_views: targets per evaluation sample (None: every target of the evaluation index).
+        eval_num_context_views: context views of evaluation samples (None: ``num_context_views``, or the lower
+            end of its range); shards carry k-view contexts up to ``to_shards.py --eval-context-views``.
+        validate_on_test: validate on the test split when the shards have no validation split (checkpoint
+            selection then sees the test scenes; the logs say so at every validation).
+        shuffle_buffer: examples held per worker for shuffling (each holds its scene's small members; frames are
+            read from the shard when picked).
+        seed: base seed of the training streams (and of the fixed pools).
     """
 
     def __init__(
@@ -58,32 +83,52 @@ class DataModule(L.LightningDataModule):
         image_size: int = 224,
         batch_size: int = 10,
         num_workers: int = 4,
-        num_context_views: int = 2,
+        num_context_views: int | tuple[int, int] = 2,
         num_target_views: int = 1,
         gap_initial: tuple[int, int] = (25, 25),
         gap_final: tuple[int, int] = (25, 90),
         gap_warmup_steps: int = 150_000,
+        min_target_distance: int = 1,
+        examples_per_scene: int = 1,
+        fixed_pool: int = 0,
         flip_augment: bool = True,
         train_batches_per_epoch: int = 1000,
         eval_batch_size: int = 1,
         eval_num_target_views: int | None = None,
+        eval_num_context_views: int | None = None,
+        validate_on_test: bool = False,
         shuffle_buffer: int = 64,
         seed: int = 0,
     ) -> None:
         super().__init__()
         if image_size < 1 or batch_size < 1 or eval_batch_size < 1 or num_workers < 0:
-            raise ValueError("image_size, batch_size and eval_batch_size must be >= 1, num_workers >= 0")
+            raise UserError("data: image_size, batch_size and eval_batch_size must be >= 1, num_workers >= 0")
+        if num_target_views < 1 or min_target_distance < 1 or examples_per_scene < 1 or fixed_pool < 0:
+            raise UserError("data: num_target_views, min_target_distance and examples_per_scene must be >= 1, "
+                            "fixed_pool >= 0")  # fmt: skip
+        try:
+            self.context_views = ContextCount.parse(num_context_views)
+            self.eval_context_views = ContextCount.parse(eval_num_context_views or self.context_views.lo).lo
+            self.curriculum = GapCurriculum(tuple(gap_initial), tuple(gap_final), gap_warmup_steps)
+        except ValueError as err:
+            raise UserError(f"data: {err}") from None
+        if fixed_pool and not self.context_views.fixed:
+            raise UserError("data.fixed_pool draws its examples once, with one count of context views: give "
+                            "data.num_context_views a number, not a range")  # fmt: skip
+        self.num_context_views = num_context_views  # as given: what the model checks its head against
         self.root = Path(root)
         self.image_size = image_size
         self.batch_size = batch_size
         self.eval_batch_size = eval_batch_size
         self.num_workers = num_workers
-        self.num_context_views = num_context_views
         self.num_target_views = num_target_views
         self.eval_num_target_views = eval_num_target_views
-        self.curriculum = GapCurriculum(tuple(gap_initial), tuple(gap_final), gap_warmup_steps)
+        self.min_target_distance = min_target_distance
+        self.examples_per_scene = examples_per_scene
+        self.fixed_pool = fixed_pool
         self.flip_augment = flip_augment
         self.train_batches_per_epoch = train_batches_per_epoch
+        self.validate_on_test = validate_on_test
         self.shuffle_buffer = shuffle_buffer
         self.seed = seed
         self._step = torch.zeros(1, dtype=torch.int64).share_memory_()
@@ -149,34 +194,38 @@ class DataModule(L.LightningDataModule):
         return has_split(self.root, split)
 
     def validation_split(self) -> str:
-        """The split validation runs on: ``validation`` when the shards have one, else ``test`` (warned)."""
-        if self.has_split("validation"):
-            return "validation"
-        if not getattr(self, "_warned_no_validation", False):
-            self._warned_no_validation = True
+        """The split validation runs on (:func:`validation_split`); on the test split, every call logs it."""
+        split = validation_split(self.root, self.validate_on_test)
+        if split == "test":
             log.warning(
-                "%s has no validation split: validating on the test split, so checkpoint selection sees the "
-                "test scenes; make one with `data_prep/to_shards.py --val-scenes N` (docs/validation.md)",
+                "data.validate_on_test: validating on the TEST split of %s (it has no validation split): "
+                "checkpoint selection sees the test scenes",
                 self.root,
             )
-        return "test"
+        return split
 
     def shards(self, split: str) -> list[str]:
         """Sorted shard paths of ``root/<split>`` (see :func:`find_shards`)."""
         found = find_shards(self.root, split)
-        manifest = self.root / "manifest.json"
-        size = json.loads(manifest.read_text()).get("config", {}).get("size") if manifest.exists() else None
-        if size is not None and size != self.image_size:
-            log.info("shards are %dpx, resizing to image_size=%d while loading", size, self.image_size)
+        manifest = read_manifest(self.root)
+        if manifest is not None and manifest.size is not None and manifest.size != self.image_size:
+            log.info("shards are %dpx, resizing to image_size=%d while loading", manifest.size, self.image_size)
         return found
 
     def _config(self, train: bool) -> StreamConfig:
+        if not train:
+            return StreamConfig(image_size=self.image_size, batch_size=self.eval_batch_size,
+                                context_views=ContextCount(self.eval_context_views, self.eval_context_views),
+                                num_target_views=self.eval_num_target_views)  # fmt: skip
         return StreamConfig(
             image_size=self.image_size,
-            batch_size=self.batch_size if train else self.eval_batch_size,
-            num_context_views=self.num_context_views,
-            num_target_views=self.num_target_views if train else self.eval_num_target_views,
-            flip_augment=self.flip_augment and train,
+            batch_size=self.batch_size,
+            context_views=self.context_views,
+            num_target_views=self.num_target_views,
+            flip_augment=self.flip_augment,
+            min_target_distance=self.min_target_distance,
+            examples_per_scene=self.examples_per_scene,
+            fixed_pool=self.fixed_pool,
         )
 
     def _loader(self, dataset: torch.utils.data.IterableDataset, on_epoch_start=None) -> DataLoader:
@@ -200,15 +249,71 @@ class DataModule(L.LightningDataModule):
         return self.train_batches_per_epoch
 
     def train_dataset(self) -> TrainStream:
-        return TrainStream(self.shards("train"), self._config(True), self.rank, self.world_size,
-                           self._counters["train"], self._step, self.curriculum, self.epoch_length(),
-                           seed=self.seed, shuffle_buffer=self.shuffle_buffer)  # fmt: skip
+        """The training stream of this rank, after checking (one line each) that the shards hold whole scenes,
+        that every rank gets scenes of its own and that some of them give examples all along the curriculum."""
+        scenes = training_scenes(self.root)
+        cfg = self._config(True)
+        mine = partition(sorted(scenes, key=lambda s: (s.shard, s.key)), self.rank, self.world_size)
+        if not mine:
+            raise UserError(
+                f"{len(scenes)} training scenes in {self.root} cannot give each of {self.world_size} "
+                "ranks a scene of its own: convert more scenes or train on fewer devices"
+            )
+        self._check_usable(mine, cfg)
+        return TrainStream(
+            scenes,
+            cfg,
+            self.rank,
+            self.world_size,
+            self._counters["train"],
+            self._step,
+            self.curriculum,
+            self.epoch_length(),
+            seed=self.seed,
+            shuffle_buffer=self.shuffle_buffer,
+        )
+
+    def _check_usable(self, scenes: list[SceneRef], cfg: StreamConfig) -> None:
+        """Refuse a run in which, at some step of the curriculum (checked at 17 points of the warm-up), none of
+        this rank's scenes can give an example: it would stop later, in a worker, far from the cause."""
+        steps = sorted({round(self.curriculum.warmup_steps * i / 16) for i in range(17)})
+        lengths = sorted({s.frames for s in scenes})
+        for count in range(self.context_views.lo, self.context_views.hi + 1):
+            gaps: set[int] = set()
+            if cfg.fixed_pool:
+                for s in scenes:
+                    pool = fixed_pool(s.frames, self.curriculum.span(), cfg.fixed_pool, count, POOL_TARGETS,
+                                      cfg.min_target_distance, scene_seed(self.seed, s.key))  # fmt: skip
+                    gaps.update(p.gap for p in pool if len(p.target) >= self.num_target_views)
+            for step in steps:
+                allowed = self.curriculum.allowed(step)
+                if cfg.fixed_pool:
+                    ok = any(allowed[0] <= g <= allowed[1] for g in gaps)
+                else:
+                    ok = any(usable_at(n, allowed, cfg, count) for n in lengths)
+                if not ok:
+                    raise UserError(
+                        f"no training scene in {self.root} gives an example at step {step}: a context gap in "
+                        f"{list(allowed)} with {count} context and {self.num_target_views} target views "
+                        f"(scenes have {lengths[0]}..{lengths[-1]} frames); change data.gap_initial/gap_final, "
+                        "the view counts or data.min_target_distance, or convert longer scenes"
+                    )
 
     def eval_dataset(self, split: str = "test") -> EvalStream:
         """The evaluation stream of ``test``, or of ``val``: the validation split (``validation_split``)."""
         counters = self._counters["test" if split == "test" else "val"]
         folder = "test" if split == "test" else self.validation_split()
-        return EvalStream(self.shards(folder), self._config(False), self.rank, self.world_size, counters)
+        shards = self.shards(folder)
+        manifest = read_manifest(self.root)
+        record = None if manifest is None else manifest.splits.get(folder)
+        k = self.eval_context_views
+        if record is not None and k > record.context_views:
+            raise UserError(
+                f"the {folder} shards in {self.root} carry contexts of up to {record.context_views} "
+                f"views, not {k}: convert again with `python data_prep/to_shards.py --src SRC --out "
+                f"{self.root} --eval-context-views {k}`"
+            )
+        return EvalStream(shards, self._config(False), self.rank, self.world_size, counters)
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.train_dataset(), on_epoch_start=self._sync_epoch_start)
@@ -239,38 +344,16 @@ class _EpochStartLoader(DataLoader):
         return super().__iter__()
 
 
-def has_split(root: str | Path, split: str) -> bool:
-    """Whether the shards under ``root`` hold ``split``: the manifest lists it, or (without one) its folder
-    has tars."""
-    path = Path(root) / "manifest.json"
-    if path.exists():
-        return split in json.loads(path.read_text()).get("splits", {})
-    return any((Path(root) / split).glob("*.tar"))
-
-
-def find_shards(root: str | Path, split: str) -> list[str]:
-    """Sorted shard paths of ``root/<split>``: those the manifest lists if there is one (stale tars from an
-    older conversion are ignored), else every ``*.tar``. A one-line error naming the fix if there are none."""
-    root = Path(root)
-    if not root.is_dir():
-        raise MissingFileError(
-            f"no shards in {root}: the folder does not exist; give the folder `python data_prep/to_shards.py "
-            "--out` wrote, or create it with that command"
-        )
-    folder = root / split
-    path = root / "manifest.json"
-    manifest = json.loads(path.read_text()) if path.exists() else {}
-    listed = manifest.get("splits", {}).get(split)
-    if listed is not None:
-        wanted = [folder / s["shard"] for s in listed["shards"]]
-        found = sorted(str(p) for p in wanted if p.exists())
-        if len(found) < len(wanted):
-            log.warning("%d shards listed in %s are missing from %s", len(wanted) - len(found), path, folder)
-    else:
-        found = sorted(str(p) for p in folder.glob("*.tar"))
-    if not found:
-        raise MissingFileError(
-            f"no shards in {folder}: create them with `python data_prep/to_shards.py --src SRC --out "
-            f"{root}` (or `python data_prep/synthetic.py --out SRC` first for the synthetic set)"
-        )
-    return found
+def validation_split(root: str | Path, validate_on_test: bool = False) -> str:
+    """The split validation runs on: ``validation`` when the shards under ``root`` have one; ``test`` only
+    when asked by name (``validate_on_test``); else a one-line error saying how to make a validation split."""
+    if has_split(root, "validation"):
+        return "validation"
+    if validate_on_test:
+        return "test"
+    raise UserError(
+        f"{root} has no validation split, and validating on the test split would let checkpoint selection see "
+        f"the test scenes: make one with `python data_prep/to_shards.py --src SRC --out {root} --val-scenes N` "
+        "(synthetic data: `data_prep/synthetic.py --val-scenes N`), or set --data.validate_on_test true to "
+        "validate on the test split knowingly"
+    )

@@ -1,14 +1,20 @@
 """Streaming shards into ``BatchedExample`` batches, split explicitly by rank and worker (docs/data.md).
 
-- Training: every (rank, worker) resamples its shards forever through a shuffle buffer and yields exactly its
-  share of ``batches_per_rank`` batches, so every rank sees the same number of batches (no DDP hang).
-  Epochs are blocks of ``batches_per_rank`` global steps. Batch j of the epoch that starts at step e is drawn
-  for step e + j: the curriculum judges its samples at that step, and the random streams are seeded with e.
-  So the data depend only on (seed, rank, e, j), not on timing or prefetching, and an iterator started in
-  the middle of an epoch (a run resumed from a mid-epoch checkpoint) replays the epoch's first batches
-  without yielding them and continues exactly where the interrupted run stopped.
-- Evaluation: deterministic order, every sample exactly once across all ranks and workers.
-- A corrupt sample or shard is skipped, counted in a shared counter table and logged, never fatal.
+- Training reads whole scenes (layout ``scenes``) and draws every example at run time
+  (:mod:`aesplat.data.sampler`): the context gap from the curriculum's range at the step the batch is trained
+  at, a random start, extra context views and targets between the outer two; or, with ``fixed_pool``, one of a
+  pool of examples drawn once per scene. Every (rank, worker) resamples its scenes forever through a shuffle
+  buffer and yields exactly its share of ``batches_per_rank`` batches, so every rank sees the same number of
+  batches (no DDP hang); ranks read disjoint scenes. Epochs are blocks of ``batches_per_rank`` global steps.
+  Batch j of the epoch that starts at step e is drawn for step e + j (its curriculum range and its count of
+  context views), and the random streams are seeded with (seed, rank, worker role, e). So the data depend
+  only on those, not on timing or prefetching, and an iterator started in the middle of an epoch (a run
+  resumed from a mid-epoch checkpoint) replays the epoch's first batches without yielding them and continues
+  exactly where the interrupted run stopped.
+- Evaluation reads deterministic samples (layout ``samples``) in a fixed order, every sample exactly once
+  across all ranks and workers, with the k-view context the shards state for the evaluated count.
+- A corrupt sample or shard, a scene too short for the current range, are skipped, counted in a shared counter
+  table and logged (the scene named), never fatal.
 
 Workers batch samples themselves (the DataLoader runs with ``batch_size=None``) so batch counts are exact.
 """
@@ -18,10 +24,12 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import tarfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -33,11 +41,16 @@ from torch.utils.data import IterableDataset, get_worker_info
 from aesplat.types import BatchedExample, BatchedViews
 
 from .curriculum import GapCurriculum
+from .manifest import SceneRef
+from .sampler import ContextCount, ViewPick, fixed_pool, gap_range, sample_views, scene_seed, smallest_gap
+from .sources.base import safe_key
 
 log = logging.getLogger("aesplat.data")
 
-COUNTERS = ("corrupt_samples", "corrupt_shards", "curriculum_skipped", "too_few_targets")
+COUNTERS = ("corrupt_samples", "corrupt_shards", "curriculum_skipped", "too_few_targets", "scene_too_short",
+            "too_few_between", "no_context_views")  # fmt: skip
 REFLECT = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+POOL_TARGETS = 3  # targets stored per fixed-pool example, as the pre-drawn samples of earlier shards held
 
 
 def new_counters(num_workers: int) -> Tensor:
@@ -50,9 +63,10 @@ def read_tar(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
     """Stream the samples of a WebDataset tar: (key, {extension: bytes}), members grouped by key.
 
     Raises ``tarfile.ReadError`` / ``EOFError`` / ``OSError`` on a truncated or corrupt tar (the incomplete
-    sample at the point of failure is never yielded).
+    sample at the point of failure is never yielded, wherever the file was cut).
     """
     key, sample = None, {}
+    size = os.path.getsize(path)
     with tarfile.open(path, "r|") as tar:
         for member in tar:
             if not member.isfile():
@@ -68,8 +82,82 @@ def read_tar(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
                     yield key, sample
                 key, sample = k, {}
             sample[ext] = data
+        # tarfile ends quietly when the file stops inside a header: a whole archive ends with two zero blocks.
+        if size - tar.offset < 2 * tarfile.BLOCKSIZE:
+            raise tarfile.ReadError(f"archive truncated after {tar.offset} bytes (no end-of-archive marker)")
     if key is not None:
         yield key, sample
+
+
+@dataclass(frozen=True)
+class SceneEntry:
+    """A whole-scene sample as indexed, not read: its small members' bytes (meta, cameras, frame offsets) and
+    where its frames' JPEGs lie in the shard (byte offset and length of ``frames.jpgs``)."""
+
+    shard: str
+    key: str
+    members: dict[str, bytes]
+    frames_at: int
+    frames_size: int
+
+    @property
+    def num_frames(self) -> int:
+        return len(json.loads(self.members["meta.json"])["frames"])
+
+
+def index_scenes(path: str | Path) -> Iterator[SceneEntry]:
+    """The whole-scene samples of a training shard, reading only the headers and the small members: the frames
+    stay on disk until an example picks some (:class:`FrameReader`). Raises ``tarfile.ReadError`` / ``OSError``
+    on a truncated or corrupt shard (the incomplete scene at the point of failure is never yielded)."""
+    size = os.path.getsize(path)
+    key, members, span = None, {}, None
+    with tarfile.open(path, "r:") as tar:  # random access: headers are read, frame bytes are skipped
+        for member in tar:
+            if not member.isfile():
+                continue
+            k, _, ext = member.name.rsplit("/", 1)[-1].partition(".")
+            if member.offset_data + member.size > size:
+                raise tarfile.ReadError(f"member {member.name} truncated")
+            if k != key:
+                if key is not None and span is not None:
+                    yield SceneEntry(str(path), key, members, *span)
+                key, members, span = k, {}, None
+            if ext == "frames.jpgs":
+                span = (member.offset_data, member.size)
+            else:
+                members[ext] = tar.extractfile(member).read()
+        if size - tar.offset < 2 * tarfile.BLOCKSIZE:  # see read_tar: a whole archive ends with two zero blocks
+            raise tarfile.ReadError(f"archive truncated after {tar.offset} bytes (no end-of-archive marker)")
+    if key is not None and span is not None:
+        yield SceneEntry(str(path), key, members, *span)
+
+
+class FrameReader:
+    """Reads a scene's picked frames from its shard, keeping the last few shards open (one reader per worker:
+    it is made empty in each process)."""
+
+    def __init__(self, keep: int = 8) -> None:
+        self.keep = keep
+        self._open: dict[str, Any] = {}
+
+    def frames(self, entry: SceneEntry, picks: list[int]) -> list[bytes]:
+        offsets = np.load(io.BytesIO(entry.members["frames.offsets.npy"]))
+        if offsets[-1] != entry.frames_size or (np.diff(offsets) <= 0).any():
+            raise ValueError(
+                f"frame offsets {offsets[:3]}… do not describe {entry.frames_size} bytes of frames"
+            )
+        f = self._open.pop(entry.shard, None) or open(entry.shard, "rb")  # noqa: SIM115 - kept open, closed below
+        self._open[entry.shard] = f  # most recently used last
+        while len(self._open) > self.keep:
+            self._open.pop(next(iter(self._open))).close()
+        out = []
+        for v in picks:
+            f.seek(entry.frames_at + int(offsets[v]))
+            data = f.read(int(offsets[v + 1] - offsets[v]))
+            if len(data) != offsets[v + 1] - offsets[v]:
+                raise ValueError(f"frame {v} is cut short in {entry.shard}")
+            out.append(data)
+        return out
 
 
 def flip_views(images: Tensor, extrinsics: Tensor, intrinsics: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -83,133 +171,178 @@ def flip_views(images: Tensor, extrinsics: Tensor, intrinsics: Tensor) -> tuple[
 
 @dataclass(frozen=True)
 class StreamConfig:
-    """What a stream needs to turn samples into batches (built by the DataModule)."""
+    """What a stream needs to turn shard samples into batches (built by the DataModule).
+
+    context_views: the count of context views (training: per batch, see :class:`ContextCount`; evaluation: a
+    fixed count); num_target_views: targets per example (None: every target of an evaluation sample);
+    min_target_distance: frames between a target and the outer context frames, at least; examples_per_scene:
+    training examples drawn from each scene read (they enter the shuffle buffer separately); fixed_pool: 0
+    draws every example afresh, N > 0 draws N examples per scene once (seeded) and reuses them."""
 
     image_size: int
     batch_size: int
-    num_context_views: int = 2
-    num_target_views: int | None = 1  # None: every target of the sample (evaluation)
+    context_views: ContextCount = ContextCount(2, 2)
+    num_target_views: int | None = 1
     flip_augment: bool = False
+    min_target_distance: int = 1
+    examples_per_scene: int = 1
+    fixed_pool: int = 0
 
 
-def decode_sample(key: str, raw: dict[str, bytes], cfg: StreamConfig, rng: np.random.Generator | None) -> dict:
-    """Raw sample -> tensors. ``rng`` picks the targets (a sorted random subset) and the flip; None means
-    evaluation: every target (or the first ``num_target_views``), no flip. ``ValueError`` on a bad sample.
-    ``highlight`` is the picked targets' masks bool [Vt, 1, H, W] when the sample has one for each of them
-    (``tgtI.spec.png``), else None; resized by nearest neighbour and flipped with the images."""
-    meta = json.loads(raw["meta.json"])
-    ctx_names = sorted(
-        (n for n in raw if n.startswith("ctx") and n.endswith(".jpg")), key=lambda n: int(n[3:-4])
-    )
-    tgt_names = sorted(
-        (n for n in raw if n.startswith("tgt") and n.endswith(".jpg")), key=lambda n: int(n[3:-4])
-    )
-    if len(ctx_names) != cfg.num_context_views:
-        raise ValueError(
-            f"sample has {len(ctx_names)} context views, the data module wants {cfg.num_context_views}"
-        )
+@dataclass
+class Example:
+    """One decoded example (context views first, then targets).
+
+    images uint8 [V, 3, H, W]; extrinsics [V, 4, 4] camera-to-world; intrinsics [V, 3, 3] normalised;
+    index int64 [V] source frame ids; gap: context gap in stored frames (what the curriculum judges);
+    overlap: NaN where unknown; highlight bool [Vt, 1, H, W] target highlight masks, or None."""
+
+    images: Tensor
+    extrinsics: Tensor
+    intrinsics: Tensor
+    index: Tensor
+    num_context: int
+    scene: str
+    dataset: str
+    gap: int
+    overlap: float = float("nan")
+    highlight: Tensor | None = None
+
+
+def _image(data: bytes, name: str, size: int) -> Tensor:
+    """An encoded square image -> uint8 [3, size, size] (resized when stored at another size: square to square
+    maps the full extent onto the full extent, so normalised intrinsics are unchanged)."""
+    with Image.open(io.BytesIO(data)) as pil:
+        img = torch.from_numpy(np.array(pil.convert("RGB"))).permute(2, 0, 1)
+    if img.shape[1:] != (size, size):
+        if img.shape[1] != img.shape[2]:
+            raise ValueError(f"{name} is {tuple(img.shape[1:])}, shard images must be square")
+        img = F.interpolate(img[None].float(), size=(size, size), mode="bilinear", antialias=True,
+                            align_corners=False)[0].round().clamp(0, 255).to(torch.uint8)  # fmt: skip
+    return img
+
+
+def _mask(data: bytes, name: str, size: int) -> Tensor:
+    """A highlight mask PNG -> bool [1, size, size] (nearest neighbour keeps it a mask)."""
+    with Image.open(io.BytesIO(data)) as pil:
+        mask = torch.from_numpy(np.array(pil.convert("L")) > 127)[None]
+    if mask.shape[-1] != mask.shape[-2]:
+        raise ValueError(f"{name} is {tuple(mask.shape[1:])}, shard masks must be square")
+    if mask.shape[-1] != size:
+        mask = F.interpolate(mask[None].float(), size=(size, size), mode="nearest-exact")[0] > 0.5
+    return mask
+
+
+def _cameras(raw: dict[str, bytes], rows: int) -> tuple[Tensor, Tensor]:
     extrinsics = torch.from_numpy(np.load(io.BytesIO(raw["extrinsics.npy"]))).float()
     intrinsics = torch.from_numpy(np.load(io.BytesIO(raw["intrinsics.npy"]))).float()
-    v = len(ctx_names) + len(tgt_names)
-    if extrinsics.shape != (v, 4, 4) or intrinsics.shape != (v, 3, 3):
-        raise ValueError(
-            f"camera arrays {tuple(extrinsics.shape)}, {tuple(intrinsics.shape)} do not match {v} views"
-        )
-    want = len(tgt_names) if cfg.num_target_views is None else cfg.num_target_views
-    if len(tgt_names) < want:
-        raise ValueError(f"sample has {len(tgt_names)} targets, the data module wants {want}")
-    if rng is None:
-        picked = list(range(want))
-    else:
-        picked = sorted(rng.choice(len(tgt_names), size=want, replace=False).tolist())
-    views = list(range(len(ctx_names))) + [len(ctx_names) + i for i in picked]
-    names = ctx_names + [tgt_names[i] for i in picked]
-    images = []
-    for name in names:
-        with Image.open(io.BytesIO(raw[name])) as pil:
-            img = torch.from_numpy(np.array(pil.convert("RGB"))).permute(2, 0, 1)  # [3, H, W] uint8
-        if img.shape[1:] != (cfg.image_size, cfg.image_size):
-            if img.shape[1] != img.shape[2]:
-                raise ValueError(f"{name} is {tuple(img.shape[1:])}, shard images must be square")
-            # Square to square maps the full extent onto the full extent: normalised intrinsics are unchanged.
-            img = F.interpolate(img[None].float(), size=(cfg.image_size,) * 2, mode="bilinear", antialias=True,
-                                align_corners=False)[0].round().clamp(0, 255).to(torch.uint8)  # fmt: skip
-        images.append(img)
-    images_t = torch.stack(images)  # [V, 3, H, W]
-    highlight = _highlight(raw, [tgt_names[i] for i in picked], cfg.image_size)
-    extrinsics, intrinsics = extrinsics[views], intrinsics[views]
-    frames = torch.tensor(list(meta["context"]) + [meta["target"][i] for i in picked], dtype=torch.int64)
+    if extrinsics.shape != (rows, 4, 4) or intrinsics.shape != (rows, 3, 3):
+        raise ValueError(f"camera arrays {tuple(extrinsics.shape)}, {tuple(intrinsics.shape)} do not match "
+                         f"{rows} frames")  # fmt: skip
     if not (torch.isfinite(extrinsics).all() and torch.isfinite(intrinsics).all()):
         raise ValueError("non-finite cameras")
-    if rng is not None and cfg.flip_augment and rng.uniform() < 0.5:
-        images_t, extrinsics, intrinsics = flip_views(images_t, extrinsics, intrinsics)
-        highlight = None if highlight is None else highlight.flip(-1)
-    overlap = meta.get("overlap")
-    return {
-        "key": key,
-        "images": images_t,
-        "extrinsics": extrinsics,
-        "intrinsics": intrinsics,
-        "index": frames,
-        "scene": str(meta["scene"]),
-        "dataset": str(meta.get("dataset", "")),
-        "gap": int(meta["gap"]),
-        "overlap": float("nan") if overlap is None else float(overlap),
-        "highlight": highlight,
-    }
+    return extrinsics, intrinsics
 
 
-def _highlight(raw: dict[str, bytes], targets: list[str], size: int) -> Tensor | None:
-    """Highlight masks of the named target images (``tgtI.jpg`` -> ``tgtI.spec.png``): bool [Vt, 1, S, S], or
-    None unless every one of them has a mask."""
-    names = [name[: -len(".jpg")] + ".spec.png" for name in targets]
-    if not names or not all(n in raw for n in names):
-        return None
-    masks = []
-    for name in names:
-        with Image.open(io.BytesIO(raw[name])) as pil:
-            mask = torch.from_numpy(np.array(pil.convert("L")) > 127)[None]  # [1, H, W]
-        if mask.shape[-1] != mask.shape[-2]:
-            raise ValueError(f"{name} is {tuple(mask.shape[1:])}, shard masks must be square")
-        if mask.shape[-1] != size:  # nearest keeps it a mask; the image's resize is an antialiased bilinear
-            mask = F.interpolate(mask[None].float(), size=(size, size), mode="nearest-exact")[0] > 0.5
-        masks.append(mask)
-    return torch.stack(masks)
-
-
-def collate(samples: list[dict], cfg: StreamConfig) -> BatchedExample:
-    """Decoded samples -> ``BatchedExample`` with uint8 images [B, V, 3, H, W]."""
-    nc = cfg.num_context_views
-
-    def views(sl: slice) -> BatchedViews:
-        images = torch.stack([s["images"][sl] for s in samples])
-        return BatchedViews(
-            images=images,
-            extrinsics=torch.stack([s["extrinsics"][sl] for s in samples]),
-            intrinsics=torch.stack([s["intrinsics"][sl] for s in samples]),
-            index=torch.stack([s["index"][sl] for s in samples]),
+def _flip(example: Example, cfg: StreamConfig, rng: np.random.Generator) -> Example:
+    if cfg.flip_augment and rng.uniform() < 0.5:
+        example.images, example.extrinsics, example.intrinsics = flip_views(
+            example.images, example.extrinsics, example.intrinsics
         )
+    return example
 
-    counts = sorted({s["images"].shape[0] - nc for s in samples})
+
+def decode_scene_example(entry: SceneEntry, reader: FrameReader, pick: ViewPick, cfg: StreamConfig,
+                         rng: np.random.Generator) -> Example:  # fmt: skip
+    """A training example from a whole-scene sample: only the picked frames are read and decoded. ``rng`` draws
+    the flip. ``ValueError`` on a bad sample."""
+    meta = json.loads(entry.members["meta.json"])
+    frames = list(meta["frames"])
+    views = [*pick.context, *pick.target]
+    extrinsics, intrinsics = _cameras(entry.members, len(frames))
+    data = reader.frames(entry, views)
+    images = torch.stack([_image(d, f"frame {v}", cfg.image_size) for v, d in zip(views, data)])
+    example = Example(
+        images,
+        extrinsics[views],
+        intrinsics[views],
+        torch.tensor([frames[v] for v in views]),
+        len(pick.context),
+        str(meta["scene"]),
+        str(meta.get("dataset", "")),
+        pick.gap,
+    )
+    return _flip(example, cfg, rng)
+
+
+class NoContext(ValueError):
+    """An evaluation sample that carries no context of the evaluated count (shards made for fewer views)."""
+
+
+def decode_evaluation_sample(raw: dict[str, bytes], cfg: StreamConfig) -> Example:
+    """An evaluation example: the sample's context of ``cfg.context_views`` views (its index's own, or the
+    k-view context the shards state), every target or the first ``num_target_views``. ``NoContext`` when the
+    sample has no context of that count; ``ValueError`` on a bad sample."""
+    meta = json.loads(raw["meta.json"])
+    context, target, extra = list(meta["context"]), list(meta["target"]), list(meta.get("extra", []))
+    names = {f: f"ctx{i}" for i, f in enumerate(context)}
+    names.update({f: f"tgt{i}" for i, f in enumerate(target)})
+    names.update({f: f"xtr{i}" for i, f in enumerate(extra)})
+    rows = {f: i for i, f in enumerate([*context, *target, *extra])}
+    k = cfg.context_views.lo
+    chosen = meta.get("context_views", {}).get(str(k)) or (context if len(context) == k else None)
+    if chosen is None:
+        raise NoContext(f"it carries no {k}-view context (convert with --eval-context-views {k} or more)")
+    want = len(target) if cfg.num_target_views is None else cfg.num_target_views
+    if len(target) < want:
+        raise ValueError(f"sample has {len(target)} targets, the data module wants {want}")
+    targets = target[:want]
+    views = [*chosen, *targets]
+    extrinsics, intrinsics = _cameras(raw, len(rows))
+    picked = [rows[f] for f in views]
+    images = torch.stack([_image(raw[f"{names[f]}.jpg"], names[f], cfg.image_size) for f in views])
+    masks = [f"{names[f]}.spec.png" for f in targets]
+    highlight = None
+    if masks and all(m in raw for m in masks):
+        highlight = torch.stack([_mask(raw[m], m, cfg.image_size) for m in masks])
+    overlap = meta.get("overlap")
+    return Example(images, extrinsics[picked], intrinsics[picked], torch.tensor(views, dtype=torch.int64),
+                   len(chosen), str(meta["scene"]), str(meta.get("dataset", "")), int(meta["gap"]),
+                   float("nan") if overlap is None else float(overlap), highlight)  # fmt: skip
+
+
+def collate(examples: list[Example]) -> BatchedExample:
+    """Decoded examples -> ``BatchedExample`` with uint8 images [B, V, 3, H, W]."""
+    counts = sorted({(e.num_context, e.images.shape[0] - e.num_context) for e in examples})
     if len(counts) > 1:
         raise ValueError(
-            f"samples of one batch have different numbers of target views {counts} (scenes "
-            f"{[s['scene'] for s in samples]}): set eval_num_target_views or eval_batch_size=1"
+            f"examples of one batch have different numbers of (context, target) views {counts} (scenes "
+            f"{[e.scene for e in examples]}): set eval_num_target_views or eval_batch_size=1"
         )
-    with_masks = [s.get("highlight") is not None for s in samples]
+    nc = counts[0][0]
+
+    def views(sl: slice) -> BatchedViews:
+        return BatchedViews(
+            images=torch.stack([e.images[sl] for e in examples]),
+            extrinsics=torch.stack([e.extrinsics[sl] for e in examples]),
+            intrinsics=torch.stack([e.intrinsics[sl] for e in examples]),
+            index=torch.stack([e.index[sl] for e in examples]),
+        )
+
+    with_masks = [e.highlight is not None for e in examples]
     if any(with_masks) and not all(with_masks):
         raise ValueError(
-            f"only some samples of one batch have highlight masks (scenes {[s['scene'] for s in samples]}): "
+            f"only some samples of one batch have highlight masks (scenes {[e.scene for e in examples]}): "
             "evaluate shards with and without masks separately, or set eval_batch_size=1"
         )
     return BatchedExample(
         context=views(slice(0, nc)),
         target=views(slice(nc, None)),
-        scene=[s["scene"] for s in samples],
-        overlap=torch.tensor([s["overlap"] for s in samples], dtype=torch.float32),
-        gap=torch.tensor([s["gap"] for s in samples], dtype=torch.int64),
-        dataset=[s["dataset"] for s in samples],
-        highlight=torch.stack([s["highlight"] for s in samples]) if all(with_masks) else None,
+        scene=[e.scene for e in examples],
+        overlap=torch.tensor([e.overlap for e in examples], dtype=torch.float32),
+        gap=torch.tensor([e.gap for e in examples], dtype=torch.int64),
+        dataset=[e.dataset for e in examples],
+        highlight=torch.stack([e.highlight for e in examples]) if all(with_masks) else None,
     )
 
 
@@ -218,18 +351,23 @@ def _worker() -> tuple[int, int]:
     return (0, 1) if info is None else (info.id, info.num_workers)
 
 
-class _ShardStream(IterableDataset):
-    """Shared plumbing: shard list, rank, counters and safe reading."""
+def partition(scenes: list[SceneRef], part: int, parts: int) -> list[SceneRef]:
+    """Part ``part`` of ``parts`` disjoint parts of ``scenes`` (sorted by shard): whole shards dealt out when
+    there are at least as many shards as parts (each shard read by one part only), else scenes dealt out."""
+    shards = sorted({s.shard for s in scenes})
+    if len(shards) >= parts:
+        mine = set(shards[part::parts])
+        return [s for s in scenes if s.shard in mine]
+    return scenes[part::parts]
 
-    def __init__(
-        self, shards: list[str], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor
-    ) -> None:
+
+class _ShardStream(IterableDataset):
+    """Shared plumbing: rank, counters and safe reading."""
+
+    def __init__(self, cfg: StreamConfig, rank: int, world_size: int, counters: Tensor) -> None:
         super().__init__()
-        if not shards:
-            raise ValueError("no shards to stream")
         if not 0 <= rank < world_size:
             raise ValueError(f"rank {rank} is outside world size {world_size}")
-        self.shards = sorted(str(s) for s in shards)
         self.cfg = cfg
         self.rank = rank
         self.world_size = world_size
@@ -240,35 +378,36 @@ class _ShardStream(IterableDataset):
         row = 0 if info is None else min(info.id + 1, self.counters.shape[0] - 1)  # one row per process
         self.counters[row, COUNTERS.index(what)] += n
 
-    def _samples(self, shard: str) -> Iterator[tuple[str, dict[str, bytes]]]:
+    def _samples(self, shard: str, scenes: bool = False) -> Iterator:
+        """The samples of a shard (``scenes``: indexed :class:`SceneEntry` objects); a corrupt shard is
+        abandoned at the point of damage, counted and logged."""
         try:
-            yield from read_tar(shard)
+            yield from index_scenes(shard) if scenes else read_tar(shard)
         except (tarfile.TarError, EOFError, OSError, ValueError) as e:
             self._count("corrupt_shards")
             log.warning("skipping the rest of corrupt shard %s: %s (counted in corrupt_shards)", shard, e)
 
-    def _decode(self, shard: str, key: str, raw: dict, rng: np.random.Generator | None) -> dict | None:
-        try:
-            return decode_sample(key, raw, self.cfg, rng)
-        except Exception as e:  # noqa: BLE001 - one bad sample must never stop a multi-day run
-            self._count("corrupt_samples")
-            log.warning("skipping corrupt sample %s in %s: %s (counted in corrupt_samples)", key, shard, e)
-            return None
-
 
 class TrainStream(_ShardStream):
-    """Infinite resampled training stream cut to ``batches_per_rank`` batches per rank (per epoch).
+    """Infinite training stream over whole scenes, cut to ``batches_per_rank`` batches per rank (per epoch).
 
-    step: shared int64 [1] tensor holding the global step; read when an epoch's iterator starts. Epochs are
-    blocks of ``batches_per_rank`` steps, so a step inside a block means "resume this epoch here".
+    scenes: every training scene (:func:`aesplat.data.manifest.training_scenes`); this rank reads its part
+    (:func:`partition`). step: shared int64 [1] tensor holding the global step; read when an epoch's iterator
+    starts. Epochs are blocks of ``batches_per_rank`` steps, so a step inside a block means "resume this epoch
+    here".
     """
 
-    def __init__(self, shards: list[str], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor,
+    def __init__(self, scenes: list[SceneRef], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor,
                  step: Tensor, curriculum: GapCurriculum, batches_per_rank: int, seed: int = 0,
                  shuffle_buffer: int = 64) -> None:  # fmt: skip
-        super().__init__(shards, cfg, rank, world_size, counters)
+        super().__init__(cfg, rank, world_size, counters)
         if batches_per_rank < 1:
             raise ValueError(f"train_batches_per_epoch must be >= 1, got {batches_per_rank}")
+        self.scenes = partition(sorted(scenes, key=lambda s: (s.shard, s.key)), rank, world_size)
+        if not self.scenes:
+            raise ValueError(
+                f"{len(scenes)} training scenes cannot give each of {world_size} ranks a scene of its own"
+            )
         self.step = step
         self.curriculum = curriculum
         self.batches_per_rank = batches_per_rank
@@ -278,29 +417,30 @@ class TrainStream(_ShardStream):
     def __len__(self) -> int:
         return self.batches_per_rank
 
-    def worker_shards(self, worker: int, num_workers: int) -> list[str]:
-        """This rank's shards for one worker. With fewer shards than ranks (or workers) every rank (worker)
-        reads them all; their random streams differ, which is harmless for training."""
-        mine = self.shards[self.rank :: self.world_size] if len(self.shards) >= self.world_size else self.shards
-        return mine[worker::num_workers] if len(mine) >= num_workers else mine
+    def worker_scenes(self, role: int, num_workers: int) -> list[SceneRef]:
+        """This rank's scenes for one worker role; with fewer scenes than workers every worker reads them all
+        (their random streams differ, which is harmless for training)."""
+        return partition(self.scenes, role, num_workers) or self.scenes
 
-    def _raw_forever(
-        self, shards: list[str], rng: np.random.Generator
-    ) -> Iterator[tuple[str, str, dict] | None]:
-        """Shuffled raw samples forever; ``None`` marks the end of each pass over the shards."""
-        buffer: list[tuple[str, str, dict]] = []
+    def _raw_forever(self, scenes: list[SceneRef], rng: np.random.Generator) -> Iterator[SceneEntry | None]:
+        """Indexed scenes shuffled forever, each scene read entering the buffer ``examples_per_scene`` times;
+        ``None`` marks the end of each pass over the scenes."""
+        keys = {safe_key(s.key) for s in scenes}
+        shards = sorted({s.shard for s in scenes})
+        buffer: list[SceneEntry] = []
         while True:
-            yielded = read = 0
+            read = 0
             for shard in rng.permutation(shards).tolist():
-                for key, raw in self._samples(shard):
-                    buffer.append((shard, key, raw))
-                    read += 1
-                    if len(buffer) >= self.shuffle_buffer:
+                for entry in self._samples(shard, scenes=True):
+                    if entry.key not in keys:
+                        continue  # another rank's or worker's scene
+                    buffer.extend([entry] * self.cfg.examples_per_scene)
+                    read += self.cfg.examples_per_scene
+                    while len(buffer) >= self.shuffle_buffer:
                         yield buffer.pop(int(rng.integers(len(buffer))))
-                        yielded += 1
-            if yielded == 0 and not buffer:
-                raise RuntimeError(f"training shards {shards} hold no readable samples")
-            # Keep at most half a buffer, and never more than half a pass: with fewer samples than the buffer
+            if read == 0 and not buffer:
+                raise RuntimeError(f"training shards {shards} hold no readable scene")
+            # Keep at most half a buffer, and never more than half a pass: with fewer scenes than the buffer
             # holds, every pass still yields (else a tiny data set would look barren to the caller).
             while len(buffer) > min(self.shuffle_buffer, read) // 2:
                 yield buffer.pop(int(rng.integers(len(buffer))))
@@ -315,58 +455,102 @@ class TrainStream(_ShardStream):
         # batches are already consumed, worker w plays stream (w + done) % nw: the next batch it is asked for is
         # then the next one of the epoch.
         role = (wid + done) % nw
-        shards = self.worker_shards(role, nw)
         rng = np.random.default_rng([self.seed, self.rank, role, start])
-        raw_stream = self._raw_forever(shards, rng)
-        draws = _Draws()
+        raw_stream = self._raw_forever(self.worker_scenes(role, nw), rng)
+        draws = _Draws(reader=FrameReader())
         for j in range(role, self.batches_per_rank, nw):  # this stream's batches of the epoch
             at = start + j  # the global step batch j is trained at
-            batch = [self._next_sample(raw_stream, rng, at, draws) for _ in range(self.cfg.batch_size)]
-            if j >= done:  # earlier batches are replayed (their samples drew from rng) but not yielded
-                yield collate(batch, self.cfg)
+            count = self.cfg.context_views.at(self.seed, at)
+            batch = [self._next_example(raw_stream, rng, at, count, draws) for _ in range(self.cfg.batch_size)]
+            if j >= done:  # earlier batches are replayed (their examples drew from rng) but not yielded
+                yield collate(batch)
 
-    def _next_sample(self, raw_stream: Iterator, rng: np.random.Generator, at: int, draws: _Draws) -> dict:
-        """The next sample the curriculum allows at step ``at`` that decodes."""
+    def _pick(self, key: str, frames: int, at: int, count: int, rng: np.random.Generator) -> ViewPick | str:
+        """The views of one example of a scene of ``frames`` frames at step ``at``, or the counter that says
+        why the scene gives none now."""
+        cfg, allowed = self.cfg, self.curriculum.allowed(at)
+        vt, distance = cfg.num_target_views or 1, cfg.min_target_distance
+        if cfg.fixed_pool:
+            pool = fixed_pool(frames, self.curriculum.span(), cfg.fixed_pool, count, POOL_TARGETS, distance,
+                              scene_seed(self.seed, key))  # fmt: skip
+            if not pool:
+                return "scene_too_short"
+            options = [p for p in pool if allowed[0] <= p.gap <= allowed[1]]
+            if not options:
+                return "curriculum_skipped"
+            chosen = options[int(rng.integers(len(options)))]
+            if len(chosen.target) < vt:
+                return "too_few_targets"
+            targets = rng.choice(np.array(chosen.target), size=vt, replace=False)
+            return ViewPick(chosen.context, tuple(sorted(int(t) for t in targets)))
+        pick = sample_views(frames, allowed, count, vt, distance, rng)
+        if pick is not None:
+            return pick
+        return "scene_too_short" if frames - 1 < allowed[0] else "too_few_between"
+
+    def _next_example(self, raw_stream: Iterator, rng: np.random.Generator, at: int, count: int,
+                      draws: _Draws) -> Example:  # fmt: skip
+        """The next example the scenes give at step ``at`` with ``count`` context views that decodes."""
         while True:
             item = next(raw_stream)
-            if item is None:  # end of a pass: two in a row without one usable sample cannot recover
+            if item is None:  # end of a pass: two in a row without one usable example cannot recover
                 draws.barren_passes = 0 if draws.accepted else draws.barren_passes + 1
                 draws.accepted = 0
                 if draws.barren_passes >= 2:
-                    seen = sorted(draws.gaps_seen)[:20]
                     raise RuntimeError(
-                        f"no training sample has a context gap allowed by the curriculum at step {at} "
-                        f"({self.curriculum.allowed(at)}) or decodes; gaps seen: {seen}. "
-                        "Convert with a matching --min-gap/--max-gap or change the curriculum ranges."
+                        f"no training scene of this worker gives an example that decodes at step {at}: "
+                        f"context gap in {self.curriculum.allowed(at)}, {count} context and "
+                        f"{self.cfg.num_target_views} target views (longest scenes seen: "
+                        f"{sorted(draws.lengths)[-5:]}); lower data.gap_* or the view counts, or convert "
+                        "longer scenes"
                     )
                 continue
-            shard, key, raw = item
-            try:  # filter on the metadata before decoding any image
-                meta = json.loads(raw["meta.json"])
-                gap, targets = int(meta["gap"]), len(meta["target"])
-            except Exception:  # noqa: BLE001
-                gap = targets = None  # decode_sample counts it as corrupt
-            if gap is not None and not self.curriculum.accepts(gap, at):
-                self._count("curriculum_skipped")
-                draws.gaps_seen.add(gap)
+            shard, key = item.shard, item.key
+            try:
+                frames = item.num_frames
+            except Exception as e:  # noqa: BLE001 - one bad sample must never stop a multi-day run
+                self._count("corrupt_samples")
+                log.warning("skipping corrupt sample %s in %s: %s (counted in corrupt_samples)", key, shard, e)
                 continue
-            if targets is not None and targets < (self.cfg.num_target_views or 1):
-                self._count("too_few_targets")
+            draws.lengths.add(frames)
+            pick = self._pick(key, frames, at, count, rng)
+            if isinstance(pick, str):
+                self._count(pick)
+                if pick != "curriculum_skipped" and (key, pick) not in draws.named:
+                    draws.named.add((key, pick))
+                    log.warning(
+                        "skipping scene %s (%d frames) at step %d: no example with a context gap in %s, "
+                        "%d context and %s target views (counted in %s)",
+                        key,
+                        frames,
+                        at,
+                        self.curriculum.allowed(at),
+                        count,
+                        self.cfg.num_target_views,
+                        pick,
+                    )
                 continue
-            sample = self._decode(shard, key, raw, rng)
-            if sample is not None:
-                draws.accepted += 1
-                return sample
+            try:
+                example = decode_scene_example(item, draws.reader, pick, self.cfg, rng)
+            except Exception as e:  # noqa: BLE001 - one bad sample must never stop a multi-day run
+                self._count("corrupt_samples")
+                log.warning("skipping corrupt sample %s in %s: %s (counted in corrupt_samples)", key, shard, e)
+                continue
+            draws.accepted += 1
+            return example
 
 
 @dataclass
 class _Draws:
-    """What one training iterator has drawn so far: passes over the shards without a usable sample, usable
-    samples in the current pass, and the gaps the curriculum turned down (for the error message)."""
+    """What one training iterator has drawn so far: passes over the scenes without a usable example, usable
+    examples in the current pass, the scene lengths seen and the (scene, reason) skips already logged; and the
+    reader of its frames."""
 
+    reader: FrameReader
     barren_passes: int = 0
     accepted: int = 0
-    gaps_seen: set[int] = field(default_factory=set)
+    lengths: set[int] = field(default_factory=set)
+    named: set[tuple[str, str]] = field(default_factory=set)
 
 
 class EvalStream(_ShardStream):
@@ -376,6 +560,14 @@ class EvalStream(_ShardStream):
     reads every shard and keeps the samples whose running index falls to it.
     """
 
+    def __init__(
+        self, shards: list[str], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor
+    ) -> None:
+        super().__init__(cfg, rank, world_size, counters)
+        if not shards:
+            raise ValueError("no shards to stream")
+        self.shards = sorted(str(s) for s in shards)
+
     def splits(self, worker: int, num_workers: int) -> tuple[list[str], int | None, int]:
         """(shards to read, modulus or None, residue) for one worker of this rank."""
         total = self.world_size * num_workers
@@ -384,25 +576,36 @@ class EvalStream(_ShardStream):
             return self.shards[me::total], None, me
         return self.shards, total, me
 
+    def _decode(self, shard: str, key: str, raw: dict) -> Example | None:
+        try:
+            return decode_evaluation_sample(raw, self.cfg)
+        except NoContext as e:
+            self._count("no_context_views")
+            log.warning("skipping evaluation sample %s in %s: %s (counted in no_context_views)", key, shard, e)
+        except Exception as e:  # noqa: BLE001 - one bad sample must never stop an evaluation
+            self._count("corrupt_samples")
+            log.warning("skipping corrupt sample %s in %s: %s (counted in corrupt_samples)", key, shard, e)
+        return None
+
     def __iter__(self) -> Iterator[BatchedExample]:
         wid, nw = _worker()
         shards, modulus, me = self.splits(wid, nw)
-        batch: list[dict] = []
+        batch: list[Example] = []
         i = -1
         for shard in shards:
             for key, raw in self._samples(shard):
                 i += 1
                 if modulus is not None and i % modulus != me:
                     continue
-                sample = self._decode(shard, key, raw, None)
-                if sample is None:
+                example = self._decode(shard, key, raw)
+                if example is None:
                     continue
-                batch.append(sample)
+                batch.append(example)
                 if len(batch) == self.cfg.batch_size:
-                    yield collate(batch, self.cfg)
+                    yield collate(batch)
                     batch = []
         if batch:
-            yield collate(batch, self.cfg)
+            yield collate(batch)
 
 
 def counter_totals(counters: Tensor) -> dict[str, int]:
@@ -415,3 +618,9 @@ def sample_keys(batch: BatchedExample) -> list[tuple[str, tuple[int, ...]]]:
     """(scene, frame ids) per batch element: identifies samples in tests and logs."""
     frames = torch.cat([batch.context.index, batch.target.index], dim=1).tolist()
     return [(s, tuple(f)) for s, f in zip(batch.scene, frames)]
+
+
+def usable_at(frames: int, allowed: tuple[int, int], cfg: StreamConfig, count: int) -> bool:
+    """Whether a scene of ``frames`` frames can give a fresh example in the ``allowed`` gap range."""
+    return gap_range(frames, allowed, smallest_gap(count, cfg.num_target_views or 1, cfg.min_target_distance)) \
+        is not None  # fmt: skip

@@ -32,7 +32,7 @@ from lightning.pytorch import Callback, LightningModule, Trainer
 from lightning.pytorch.trainer.states import TrainerFn
 from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 
-from aesplat.errors import STOP_SIGNALS, Stopped, in_this_process_only, signal_name
+from aesplat.errors import Stopped, heeded_signals, in_this_process_only, signal_name
 
 REQUEUE_SIGNAL = signal.SIGUSR1  # Lightning's SLURMEnvironment default; slurm/train.sbatch asks for it
 
@@ -82,7 +82,7 @@ class SignalsAtStepBoundary(Callback):
         launcher = trainer.strategy.launcher
         self._forward = getattr(launcher, "kill", None) if launcher is not None else None
         handler = in_this_process_only(self._on_stop_signal)
-        self._previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS}
+        self._previous = {s: signal.signal(s, handler) for s in heeded_signals()}
 
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         self._restore()

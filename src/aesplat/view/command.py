@@ -86,14 +86,17 @@ def main(argv: list[str] | None = None) -> int:
     def run() -> int:
         viewer = start_viewer(args)
         done = threading.Event()
-        previous = signal.signal(signal.SIGTERM, lambda *_: done.set())
+        # Both signals set the event, SIGINT included: a shell starts a background job with SIGINT ignored,
+        # and Python then installs no KeyboardInterrupt handler of its own.
+        previous = {sig: signal.signal(sig, lambda *_: done.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
         try:  # from here on, Ctrl-C (or SIGTERM) stops the viewer cleanly
             print(f"aesplat view: {viewer.url}  ({viewer.scene.source}; Ctrl-C to stop)", flush=True)
             done.wait()
-        except KeyboardInterrupt:
+        except KeyboardInterrupt:  # a Ctrl-C that came before the handlers were installed
             pass
         finally:
-            signal.signal(signal.SIGTERM, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
             viewer.stop()
         print("aesplat view: stopped", flush=True)
         return 0
