@@ -162,7 +162,7 @@ def evaluate(run: Run, eval_shards: Path, work: Path, settings: Settings) -> lis
     import torch
 
     from aesplat.bench import Bench, Point, Setting, evaluation_scenes
-    from aesplat.predict import load_checkpoint
+    from aesplat.checkpoint import load_checkpoint
     from aesplat.threads import apply_thread_policy
 
     apply_thread_policy(num_workers=0)  # as `aesplat bench`: the fit before left its own thread count

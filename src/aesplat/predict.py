@@ -42,7 +42,7 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 from torch import Tensor
 from tqdm import tqdm
 
-from .checkpoint import load_checkpoint
+from .checkpoint import LoadedCheckpoint, load_checkpoint
 from .commands import HelpFormatter, OneLineParser, resolve_device
 from .errors import MissingFileError, UserError, check_writable, run_reporting_user_errors
 from .export import (
@@ -361,6 +361,51 @@ def predict_scene(model: torch.nn.Module, images: Tensor) -> Prediction:
     )
 
 
+@dataclass(frozen=True)
+class PhotoPrediction:
+    """A checkpoint's prediction from photos, as ``aesplat predict`` and ``aesplat view --ckpt`` make it.
+
+    images  [V, 3, H, W] what the model saw (on the device); shape (H, W); inputs: per photo, what was used
+    """
+
+    loaded: LoadedCheckpoint
+    inputs: list[InputImage]
+    images: Tensor
+    pred: Prediction
+    shape: tuple[int, int]
+
+
+def predict_photos(
+    ckpt: str | Path, photos: list[str], *, size: int | None, crop: str, device: torch.device
+) -> PhotoPrediction:
+    """Load ``ckpt`` and predict from ``photos`` (the first is the reference frame; every view takes the first
+    photo's shape, ``size`` its shorter side, default the trained size; ``crop`` as ``--crop``). A checkpoint
+    without a camera head, a count its appearance head cannot take or a size its patch does not divide is one
+    line (UserError) before any photo is read."""
+    loaded = load_checkpoint(ckpt, device)
+    if loaded.cameras != "predicted":
+        raise UserError(
+            f"{ckpt} was trained with model.cameras={loaded.cameras}: it renders with "
+            "the data set's cameras, its camera head never trained, and it predicts no cameras for "
+            "images. Evaluate it with `aesplat test` or `aesplat bench`, or predict with a checkpoint trained "
+            "with model.cameras=predicted."
+        )
+    loaded.model.check_context_views(len(photos))
+    size, patch = size or loaded.image_size, loaded.patch_size
+    if size % patch != 0:
+        raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
+    background = tuple(loaded.background.tolist())
+    # Every view shares one model image shape: the first photo's (each other photo centre-cropped to it).
+    shape = model_image_shape(*photo_size(photos[0]), size, patch, crop)
+    inputs = [load_image(p, size, background, patch=patch, shape=shape) for p in photos]
+    images = torch.stack([i.image for i in inputs]).to(device)
+    try:
+        pred = predict_scene(loaded.model, images)
+    except ValueError as err:  # e.g. more images than the context views the checkpoint was built for
+        raise UserError(str(err)) from None
+    return PhotoPrediction(loaded, inputs, images, pred, shape)
+
+
 @torch.no_grad()
 def render_views(
     gaussians: Gaussians,
@@ -582,31 +627,12 @@ def _predict(args: argparse.Namespace) -> int:
     check_output_dir(out_dir, args.overwrite, inputs)
     exports = parse_formats(args.export) if args.export is not None else []
     device = resolve_device(args.device)
-    loaded = load_checkpoint(args.ckpt, device)
-    if loaded.cameras != "predicted":
-        raise UserError(
-            f"{args.ckpt} was trained with model.cameras={loaded.cameras}: it renders with "
-            "the data set's cameras, its camera head never trained, and predict has no cameras for the input "
-            "images. Evaluate it with `aesplat test` or `aesplat bench`, or predict with a checkpoint trained "
-            "with model.cameras=predicted."
-        )
-    loaded.model.check_context_views(len(args.images))
-    size, patch = args.size or loaded.image_size, loaded.patch_size
-    if size % patch != 0:
-        raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
+    photos = predict_photos(args.ckpt, args.images, size=args.size, crop=args.crop, device=device)
+    loaded, inputs, images, pred, shape = photos.loaded, photos.inputs, photos.images, photos.pred, photos.shape
     model_degree = loaded.sh_degree
     if args.ply_sh_degree is not None and not 0 <= args.ply_sh_degree <= model_degree:
         raise UserError(f"--ply-sh-degree must be in 0..{model_degree} for this checkpoint")
-    background = tuple(loaded.background.tolist())
-    # Every view shares one model image shape: the first photo's (each other photo centre-cropped to it).
-    shape = model_image_shape(*photo_size(args.images[0]), size, patch, args.crop)
-    inputs = [load_image(p, size, background, patch=patch, shape=shape) for p in args.images]
-    images = torch.stack([i.image for i in inputs]).to(device)
     names = [Path(p).stem for p in args.images]
-    try:
-        pred = predict_scene(loaded.model, images)
-    except ValueError as err:  # e.g. more images than the context views the checkpoint was built for
-        raise UserError(str(err)) from None
     options = {**loaded.render_options(device), "backend": args.backend}
     with staged_output(out_dir, args.overwrite) as staging:
         write_outputs(
