@@ -8,9 +8,9 @@ shipped slurm/train.sbatch and slurm/eval.sbatch) with AESPLAT_SLURM_RECORD_JOBS
 which job id was which job. The times come from slurmctld's own log (millisecond timestamps): per job, from
 submission to the end; for the preempted job also its phases (submission to start, start to the signal, signal
 to ``Requeuing``, requeued to started again, which ``cred_expire`` holds back, and the restarted job); the four
-tests' total is pytest's. A cluster that answers (SLURM_CONF, else ``$AESPLAT_SLURM_DIR/slurm.conf``) is used
-and left running; otherwise ``slurm/local_cluster.sh start`` starts one (as root it installs the packages when
-missing) and it is stopped at the end, as ``make test-slurm`` does.
+tests' total is the one pytest prints (collection included). A cluster that answers (SLURM_CONF, else
+``$AESPLAT_SLURM_DIR/slurm.conf``) is used and left running; otherwise ``slurm/local_cluster.sh start`` starts
+one (as root it installs the packages when missing) and it is stopped at the end, as ``make test-slurm`` does.
 
 Writes, whole or not at all, after every run (a run that fails is not recorded, and the command exits 1):
 
@@ -52,6 +52,7 @@ EVENTS = {
     "end": re.compile(r"_job_complete: JobId=(\d+) done"),
 }
 LINE = re.compile(r"^\[(\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(?:\.\d+)?)\] (.*)$")
+SUMMARY = re.compile(r"\bpassed\b.* in ([\d.]+)s\b")  # pytest's last line: "4 passed in 64.58s (0:01:04)"
 
 
 class MeasureError(Exception):
@@ -112,15 +113,21 @@ def job_times(role: str, job_id: str, events: JobEvents) -> dict:
     return out
 
 
-def test_times(junit: Path) -> dict:
-    """pytest's total and per-test seconds from its JUnit XML; every test must have passed."""
+def test_times(junit: Path, summary: str) -> dict:
+    """Every test must have passed (pytest's JUnit XML); their total is the one pytest's summary line prints
+    (``4 passed in 64.58s``, collection included, what ``make test-slurm`` shows), per test and without the
+    collection the XML's."""
     suite = ET.parse(junit).getroot()
     suite = suite if suite.tag == "testsuite" else suite.find("testsuite")
     counts = {k: int(suite.get(k, 0)) for k in ("tests", "failures", "errors", "skipped")}
     if counts["tests"] != len(ROLES) or counts["failures"] or counts["errors"] or counts["skipped"]:
         raise MeasureError(f"the slurm tests did not all pass: {counts} (their output is above)")
     per_test = {case.get("name"): float(case.get("time")) for case in suite.iter("testcase")}
-    return {"seconds": float(suite.get("time")), "passed": counts["tests"], "per_test": per_test}
+    total = SUMMARY.search(summary)
+    if total is None:
+        raise MeasureError(f"no 'passed in N s' in pytest's summary line {summary!r}")
+    return {"seconds": float(total.group(1)), "suite_seconds": float(suite.get("time")),
+            "passed": counts["tests"], "per_test": per_test}  # fmt: skip
 
 
 def cluster_env() -> dict[str, str]:
@@ -161,11 +168,17 @@ def measure(run: int, env: dict[str, str], log: Path) -> dict:
                    f"--junitxml={junit}", TESTS]  # fmt: skip
         print(f"run {run}: {' '.join(command[1:])}", flush=True)
         started = time.monotonic()
-        proc = subprocess.run(command, cwd=REPO, env={**env, "AESPLAT_SLURM_RECORD_JOBS": str(record)})
+        summary = ""
+        with subprocess.Popen(command, cwd=REPO, env={**env, "AESPLAT_SLURM_RECORD_JOBS": str(record)},
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) as proc:  # fmt: skip
+            for line in proc.stdout:  # shown as it comes (pytest's progress), its summary line kept
+                sys.stdout.write(line)
+                sys.stdout.flush()
+                summary = line.strip() or summary
         wall = time.monotonic() - started
         if not junit.exists():
             raise MeasureError(f"run {run}: pytest ended with status {proc.returncode} before any test ran")
-        tests = test_times(junit)
+        tests = test_times(junit, summary)
         roles = {}
         for line in record.read_text().splitlines():
             entry = json.loads(line)
@@ -202,7 +215,7 @@ ROWS = [  # label, path into a run's figures
     ("— restarted job (start-up, resume, steps 4–6)", (*PREEMPTED, "phases", "restarted")),
     ("`eval.sbatch` on the result (1 task)", ("jobs", "eval", "seconds")),
     ("tasks/GPUs mismatch (fails before `srun`)", ("jobs", "mismatch", "seconds")),
-    ("the four tests together (pytest)", ("tests", "seconds")),
+    ("the four tests together (pytest, collection included)", ("tests", "seconds")),
 ]
 
 

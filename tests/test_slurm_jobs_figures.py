@@ -71,12 +71,16 @@ def _junit(tmp_path, failures=0, skipped=0):
 
 
 def test_pytest_times_and_a_run_that_did_not_pass(bench, tmp_path):
-    times = bench.test_times(_junit(tmp_path))
-    assert times["seconds"] == 101.5 and times["passed"] == 4
+    summary = "==== 4 passed in 102.34s (0:01:42) ===="
+    times = bench.test_times(_junit(tmp_path), summary)
+    assert (times["seconds"], times["suite_seconds"], times["passed"]) == (102.34, 101.5, 4)
     assert times["per_test"]["test_3"] == 40.0
+    assert bench.test_times(_junit(tmp_path), "4 passed in 7.01s")["seconds"] == 7.01
     for counts in ({"failures": 1}, {"skipped": 4}):
         with pytest.raises(bench.MeasureError, match="did not all pass"):
-            bench.test_times(_junit(tmp_path, **counts))
+            bench.test_times(_junit(tmp_path, **counts), summary)
+    with pytest.raises(bench.MeasureError, match="summary line"):
+        bench.test_times(_junit(tmp_path), "")
 
 
 def test_the_table_has_a_column_per_run_and_says_where_it_was_measured(bench, tmp_path):
@@ -98,6 +102,6 @@ def test_the_table_has_a_column_per_run_and_says_where_it_was_measured(bench, tm
     assert rows[0] == "| job | run 1 (load 1.5 → 2.0) | run 2 (load 3.0 → 2.0) |"
     assert len(rows) == 2 + len(bench.ROWS)
     assert "| 2-task CPU training, 6 steps (uninterrupted) | 8.9 s | 8.9 s |" in rows
-    assert rows[-1] == "| the four tests together (pytest) | 71.0 s | 72.0 s |"
+    assert rows[-1] == "| the four tests together (pytest, collection included) | 71.0 s | 72.0 s |"
     held = next(row for row in rows if "cred_expire" in row)
     assert held.endswith("| 32.2 s | 32.2 s |")
