@@ -25,7 +25,10 @@ from .metrics import OVERLAP_BUCKETS
 # the share of highlight pixels. Empty for data without highlight masks.
 METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "psnr_highlight", "psnr_rest",
            "highlight_fraction")  # fmt: skip
-CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", "context_views", *METRICS)
+# context_frames / target_frames: the frames evaluated (space-separated, view 0 first), so evaluations at
+# different counts of context views can be checked to render the same targets.
+CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", "context_views", "context_frames",
+               "target_frames", *METRICS)  # fmt: skip
 
 
 @dataclass

@@ -278,6 +278,8 @@ class AESplatModule(LightningModule):
                 "bucket": overlap_bucket(overlap),
                 "gap": None if batch.gap is None else int(batch.gap[i]),
                 "context_views": batch.context.num_views,
+                "context_frames": " ".join(str(f) for f in batch.context.index[i].tolist()),
+                "target_frames": " ".join(str(f) for f in batch.target.index[i].tolist()),
                 **{k: float(v[i]) for k, v in metrics.items()},
             }
             self._test_rows.append(row)
