@@ -375,7 +375,7 @@ def main() -> None:
         shards, gaps = synthetic_shards(Path(tmp), size, args.scenes)
         torch.manual_seed(args.seed)
         module, datamodule = build(cfg, args, shards, gaps)
-        start_rss = resident_gib()  # the process before the fit: imports, the model, the data module
+        start_rss = start_peak_window()  # the process before the fit: imports, the model, the data module
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         per_step, times, records = run(module, datamodule, device, args.steps, args.warmup, precision,
@@ -389,8 +389,8 @@ def main() -> None:
         peak_gib = torch.cuda.max_memory_allocated(device) / 2**30
         peak = f"{peak_gib:.2f} GiB (CUDA, allocated)"
     else:
-        peak_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-        peak = f"{peak_gib:.2f} GiB (process RSS; {start_rss:.2f} GiB before the fit)"
+        peak_gib = fit_peak_gib()
+        peak = f"{peak_gib:.2f} GiB (process RSS during the fit; {start_rss:.2f} GiB before it)"
     net = module.model.cfg
     settings = "".join(f" --set {o}" for o in args.overrides)
     print(f"## {' + '.join(args.config)}{settings}: {precision}, {device}, {threads} torch threads\n")
@@ -413,7 +413,7 @@ def main() -> None:
     print(f"\nloss: step 0 {first:.5f}, step {len(records) - 1} {last:.5f}; {skipped} skipped steps")
     if args.json is not None:
         stages = {s: statistics.median(x.get(s, 0.0) for x in per_step) * 1e3 for s in STAGES}
-        kind = "cuda allocated" if device.type == "cuda" else "process RSS"
+        kind = "cuda allocated" if device.type == "cuda" else "process RSS during the fit"
         figures = {"config": args.config, "overrides": args.overrides, "device": str(device),
                    "threads": threads, "precision": precision, "image_size": size, "batch_size": batch,
                    "steps": args.steps, "warmup": args.warmup, "seconds_per_step": step,
@@ -430,13 +430,37 @@ def main() -> None:
             print(f"| {key} | {value:.3g} |" if isinstance(value, float) else f"| {key} | {value} |")
 
 
-def resident_gib() -> float:
-    """This process's resident memory now (GiB; Linux), NaN where /proc is missing."""
+def start_peak_window() -> float:
+    """This process's resident memory now (GiB), after returning freed heap memory to the system, and the
+    start of a new peak (Linux: the kernel's high-water mark is reset), so that ``fit_peak_gib`` reads the
+    peak of what follows rather than of the scene generation before it. NaN where /proc is missing."""
+    import ctypes
+    import ctypes.util
+    import gc
+
+    gc.collect()
     try:
-        pages = int(Path("/proc/self/statm").read_text().split()[1])
-    except (OSError, IndexError, ValueError):
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+        Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
+        return _status_gib("VmRSS")
+    except (OSError, AttributeError):
         return math.nan
-    return pages * os.sysconf("SC_PAGE_SIZE") / 2**30
+
+
+def fit_peak_gib() -> float:
+    """The peak resident memory since ``start_peak_window`` (GiB); the process's whole peak (``ru_maxrss``)
+    where the high-water mark cannot be read."""
+    peak = _status_gib("VmHWM")
+    return peak if math.isfinite(peak) else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def _status_gib(field: str) -> float:
+    """A memory line of /proc/self/status (kB) in GiB; NaN where it is missing."""
+    try:
+        line = next(x for x in Path("/proc/self/status").read_text().splitlines() if x.startswith(field + ":"))
+    except (OSError, StopIteration):
+        return math.nan
+    return int(line.split()[1]) / 2**20
 
 
 def gsplat_version() -> str:

@@ -1,8 +1,10 @@
 """benchmarks/context_views.py: its statistics, its check that every count rendered the same targets and the
 warm start without an appearance head (the runs themselves are `aesplat fit`, `aesplat test` and `aesplat
-bench`, tested where they live)."""
+bench`, tested where they live); benchmarks/context_view_cost.py: its count of the paper network's work per
+count of context views, its table and its resumption."""
 
 import importlib.util
+import json
 import math
 import sys
 from pathlib import Path
@@ -77,3 +79,39 @@ def test_fresh_head_weights_drop_the_appearance_tensors_only(tmp_path):
     out = script.fresh_head_weights(tmp_path / "work", _settings(script, config=str(config)))
     saved = torch.load(out, weights_only=True)
     assert list(saved["state_dict"]) == ["model.encoder.w"] and saved["hyper_parameters"] == {"net": {}}
+
+
+# ----------------------------------------------------------------------------------------------- cost per count
+
+
+def test_cost_counts_the_paper_network_per_count_and_resumes_its_measurements(tmp_path, monkeypatch):
+    from tests.script_loader import load_benchmark
+
+    cost = load_benchmark("context_view_cost")
+    calls = []
+
+    def measure(size, count, steps, warmup):  # a stand-in for one bench_train_step process
+        calls.append((size, count))
+        return {"size": size, "context_views": count, "seconds_per_step": 0.1 * count, "peak_gib": 1.0 + count,
+                "before_fit_gib": 1.0, "threads": 1, "batch_size": 2, "steps": steps, "warmup": warmup,
+                "load_1min": 0.0}  # fmt: skip
+
+    monkeypatch.setattr(cost, "measure", measure)
+    argv = ["--counts", "2", "3", "--sizes", "42", "--steps", "2", "--warmup", "0", "--out", str(tmp_path)]
+    cost.main(argv)
+    record = json.loads((tmp_path / "cost.json").read_text())
+    assert calls == [(42, 2), (42, 3)] and record["meta"]["commit"]
+    two, three = record["computed"]
+    # The paper's network at 224²: 16 x 16 patches + a camera token + 4 registers per view; one target view.
+    assert two["tokens_per_view"] == 261 and three["global_tokens"] == 4 * 261
+    assert three["gaussians"] == 3 * 224 * 224 and three["pool_pairs"] == 9 * 224 * 224
+    # One more view: the encoder grows with the views (3 -> 4), attention faster than the tokens.
+    assert three["encoder_gflops"] / two["encoder_gflops"] == pytest.approx(4 / 3, rel=0.01)
+    assert three["attention_gflops"] / two["attention_gflops"] > 1.5
+    parts = ("encoder", "attention", "transformer_other", "heads", "appearance")
+    assert sum(three[f"{p}_gflops"] for p in parts) == pytest.approx(three["gflops"], rel=0.01)
+    table = (tmp_path / "cost.md").read_text()
+    assert "| 42 | 3 | 0.300 | 1.50 | 4.00 | 3.000 |" in table and "| 3 | 1,044 | 150,528 |" in table
+    calls.clear()
+    cost.main(argv)  # everything measured already: nothing runs again
+    assert calls == []
