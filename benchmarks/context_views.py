@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import datetime
 import json
 import math
 import os
@@ -280,15 +281,17 @@ def same_targets(results: dict[Run, dict]) -> dict[str, str]:
 
 def summary_rows(results: dict[Run, dict], settings: Settings) -> list[dict]:
     """Per model and count: n seeds, mean and 95 % half-width of every metric. Then the paired per-seed
-    differences: pool - concat and pool - concat_fresh at two views, pool at k - pool at two."""
+    differences: pool - concat and pool - concat_fresh at two views, pool at k - pool at two. Each row's
+    ``id`` names it for the pages' figures: ``pool@3``, ``concat@2``, ``pool-concat_fresh@2``, ``pool@3-2``."""
     seeds = sorted({run.seed for run in results})
 
     def row(model: str, seed: int, k: int) -> dict | None:
         saved = results.get(Run(model, seed))
         return None if saved is None else next((r for r in saved["rows"] if r["context_views"] == k), None)
 
-    def line(name: str, views: str, pairs: list[tuple[dict, dict | None]]) -> dict:
-        out: dict = {"model": name, "context_views": views, "n": len(pairs)}
+    def line(key: str, name: str, views: str, pairs: list[tuple[dict, dict | None]]) -> dict:
+        out: dict = {"id": f"{key}@{views.replace(' − ', '-')}", "model": name, "context_views": views,
+                     "n": len(pairs)}  # fmt: skip
         for m in METRICS:
             out[m], out[f"{m}_ci"], _ = t_interval([a[m] - (b[m] if b else 0.0) for a, b in pairs])
         return out
@@ -297,14 +300,14 @@ def summary_rows(results: dict[Run, dict], settings: Settings) -> list[dict]:
     for model in MODELS:
         for k in settings.eval_views if model == "pool" else (2,):
             found = [r for s in seeds if (r := row(model, s, k)) is not None]
-            lines.append(line(NAMES[model], str(k), [(r, None) for r in found]))
+            lines.append(line(model, NAMES[model], str(k), [(r, None) for r in found]))
     for other in ("concat", "concat_fresh"):
         pairs = [(a, b) for s in seeds if (a := row("pool", s, 2)) and (b := row(other, s, 2))]
-        lines.append(line(f"`pool` − {NAMES[other]}", "2", pairs))
+        lines.append(line(f"pool-{other}", f"`pool` − {NAMES[other]}", "2", pairs))
     for k in settings.eval_views:
         if k != 2:
             pairs = [(a, b) for s in seeds if (a := row("pool", s, k)) and (b := row("pool", s, 2))]
-            lines.append(line("`pool`", f"{k} − 2", pairs))
+            lines.append(line("pool", "`pool`", f"{k} − 2", pairs))
     return lines
 
 
@@ -320,15 +323,16 @@ def markdown(lines: list[dict], results: dict[Run, dict], runs: list[Run], setti
     fit = {m: [r["fit_seconds"] for run, r in results.items() if run.model == m] for m in MODELS}
     minutes = ", ".join(f"{NAMES[m]} {sum(v) / len(v) / 60:.1f}" for m, v in fit.items() if v)
     machine = meta["machine"]
-    load = meta["load"]
+    load = meta["load"]  # the report's
     seeds = len({r.seed for r in runs})
+    evaluated = [row["load_1min"] for r in results.values() for row in r["rows"]]
     out = [
-        f"`python benchmarks/context_views.py --seeds {seeds}` on {meta['date'][:16]} UTC, "
-        f"commit {meta['commit']}{' (modified)' if meta['modified'] else ''}; {machine['cpu']}, "
-        f"{machine['cores']} cores, torch {machine.get('torch', '?')}; 1-minute load average "
-        f"{load['start'][0] if load['start'] else '?'} at the start, {load['end'][0]} at the end. "
-        f"{len(results)} of {len(runs)} runs, {settings.steps} steps each from `{settings.config}` at "
-        f"{settings.size}×{settings.size}; mean fit minutes: {minutes}.",
+        f"`python benchmarks/context_views.py --seeds {seeds}`: runs finished {meta['runs_finished']}, "
+        f"report {meta['date'][:16].replace('T', ' ')} UTC at commit {meta['commit']}"
+        f"{' (modified)' if meta['modified'] else ''}; {machine['cpu']}, {machine['cores']} cores, torch "
+        f"{machine.get('torch', '?')}; 1-minute load average {min(evaluated):.1f}–{max(evaluated):.1f} at the "
+        f"evaluations, {load['end'][0]} at the report. {len(results)} of {len(runs)} runs, {settings.steps} "
+        f"steps each from `{settings.config}` at {settings.size}×{settings.size}; mean fit minutes: {minutes}.",
         "",
         f"`pool` trained with {low} to {high} context views per batch, the `concat` rows with 2; each "
         f"evaluated on the same {scenes} test scenes and target frames at every count. Mean ± half-width of "
@@ -379,13 +383,28 @@ def plot(lines: list[dict], path: Path) -> None:
     os.replace(tmp, path)
 
 
+def finished(results: dict[Run, dict], work: Path) -> str:
+    """When the runs finished (their context_views.json written): 'YYYY-MM-DD HH:MM–HH:MM UTC'."""
+    times = sorted(
+        datetime.datetime.fromtimestamp(
+            (run.directory(work) / "context_views.json").stat().st_mtime, datetime.timezone.utc
+        )
+        for run in results
+    )
+    first, last = times[0], times[-1]
+    end = f"{last:%H:%M}" if last.date() == first.date() else f"{last:%Y-%m-%d %H:%M}"
+    return f"{first:%Y-%m-%d %H:%M}–{end} UTC"
+
+
 def _zero(x: float) -> float:
     return x if math.isfinite(x) else 0.0
 
 
 def write_report(out: Path, results: dict[Run, dict], runs: list[Run], settings: Settings,
-                 load_start: list[float]) -> None:  # fmt: skip
-    meta = {**provenance(load_start), "bench_threads": THREADS}
+                 load_start: list[float], work: Path) -> None:  # fmt: skip
+    import torch  # noqa: F401 - provenance() names the torch version of a process that imported it
+
+    meta = {**provenance(load_start), "bench_threads": THREADS, "runs_finished": finished(results, work)}
     targets = same_targets(results)
     columns = ["model", "seed", "context_views", "scenes", *METRICS, "bench_psnr", "load_1min", "fit_seconds"]
     table = [",".join(columns)]
@@ -445,7 +464,7 @@ def main(argv: list[str] | None = None) -> None:
             results[run] = run_one(run, shards, work, settings)
     if not results:
         raise SystemExit("no finished run to report")
-    write_report(out, results, runs, settings, load_start)
+    write_report(out, results, runs, settings, load_start, work)
     print(f"wrote {out / 'table.md'}, results.json, runs.csv and context_views.png ({len(results)} of "
           f"{len(runs)} runs)")  # fmt: skip
 
