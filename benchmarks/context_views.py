@@ -16,18 +16,21 @@ two-view ``concat`` head: synthetic scenes, the demo's model and training, on th
      paper's, so this head starts from its initialisation (everything else loads);
    - ``concat``: the paper's head, trained with two views, its appearance head from the warm start;
    - ``concat_fresh``: the same with the appearance head from its initialisation (the warm start without
-     its appearance tensors, written under --work), so that ``pool`` minus ``concat_fresh`` compares the two
-     heads from the same start, and ``pool`` minus ``concat`` is what a user switching heads would see.
-3. Evaluation of each run's last checkpoint, ``pool`` at every --eval-views count, the ``concat`` runs at two:
+     its appearance tensors, written under --work);
+   - ``pool_2``: the ``pool`` head trained with two views only.
+   So ``pool`` minus ``concat`` is what a user switching heads sees, ``pool_2`` minus ``concat_fresh`` the
+   head alone (same start, same views), ``pool`` minus ``pool_2`` what training with a range changes.
+3. Evaluation of each run's last checkpoint, the ``pool`` runs at every --eval-views count, the ``concat``
+   runs at two:
    accuracy with ``aesplat test --data.num_context_views k`` (the shards' k-view contexts; PSNR, SSIM,
    rotation and translation-direction errors of the predicted cameras), time with ``aesplat bench --knobs
    context_views --threads 1`` on the same samples (milliseconds per scene of the model forward and of
    rendering the targets, the median of --repeats runs each). The script checks that every run and count
    rendered the same target frames of the same scenes (``per_scene.csv``'s ``target_frames``), else stops.
 4. Report, under --out: ``runs.csv`` (one line per run and count), ``results.json`` (per model and count the
-   mean and 95 % t-interval over seeds; the paired per-seed differences ``pool`` - ``concat`` and ``pool`` -
-   ``concat_fresh`` at two views and ``pool`` at k - ``pool`` at two; the settings, the scenes and their
-   targets; date, commit, machine and load), ``table.md`` and ``context_views.png``.
+   mean and 95 % t-interval over seeds, and the paired per-seed differences of ``summary_rows``; the
+   settings, the scenes and their targets; date, commit, machine and load), ``table.md`` and
+   ``context_views.png``.
 
 Run it again to resume: a run whose RUN/context_views.json exists under the same settings is not redone, an
 interrupted fit continues from its last checkpoint, a finished evaluation is kept. Heavy: run it under
@@ -59,8 +62,9 @@ from figures import provenance, write_whole  # noqa: E402
 
 from aesplat.stats import t_interval  # noqa: E402
 
-MODELS = ("pool", "concat", "concat_fresh")
-NAMES = {"pool": "`pool`", "concat": "`concat`", "concat_fresh": "`concat`, fresh head"}
+MODELS = ("pool", "concat", "concat_fresh", "pool_2")
+NAMES = {"pool": "`pool`", "concat": "`concat`", "concat_fresh": "`concat`, fresh head",
+         "pool_2": "`pool`, trained with 2"}  # fmt: skip
 # Every metric kept per run and count; the table shows the first four.
 METRICS = ("psnr", "rot_err_deg", "forward_ms", "render_ms", "ssim", "trans_err_deg")
 LABELS = {"psnr": "PSNR (dB)", "rot_err_deg": "rotation error (°)", "forward_ms": "forward ms",
@@ -94,9 +98,14 @@ class Run:
     def directory(self, work: Path) -> Path:
         return work / "runs" / self.model / f"seed{self.seed}"
 
+    @property
+    def aggregation(self) -> str:
+        """``model.net.view_aggregation`` of the run."""
+        return "pool" if self.model.startswith("pool") else "concat"
+
     def counts(self, settings: Settings) -> tuple[int, ...]:
         """The context-view counts this run is evaluated at: the concat head takes its own two only."""
-        return settings.eval_views if self.model == "pool" else (2,)
+        return settings.eval_views if self.aggregation == "pool" else (2,)
 
     def train_views(self, settings: Settings) -> str:
         """``data.num_context_views`` of its fit: the range for ``pool``, 2 for the paper's head."""
@@ -161,9 +170,8 @@ def train(run: Run, shards: Path, work: Path, settings: Settings) -> float:
     weights = []
     if run.model == "concat_fresh":
         weights = ["--model.net.weights", str(fresh_head_weights(work, settings))]
-    aggregation = "pool" if run.model == "pool" else "concat"
     start = time.perf_counter()
-    run_lightning(["fit", "-c", str(REPO / settings.config), "--model.net.view_aggregation", aggregation,
+    run_lightning(["fit", "-c", str(REPO / settings.config), "--model.net.view_aggregation", run.aggregation,
                    *weights, "--data.num_context_views", run.train_views(settings), "--seed_everything",
                    str(run.seed), "--data.seed", str(run.seed), "--data.root", str(shards), "--data.image_size",
                    str(settings.size), "--trainer.max_steps", str(settings.steps), "--trainer.default_root_dir",
@@ -281,8 +289,9 @@ def same_targets(results: dict[Run, dict]) -> dict[str, str]:
 
 def summary_rows(results: dict[Run, dict], settings: Settings) -> list[dict]:
     """Per model and count: n seeds, mean and 95 % half-width of every metric. Then the paired per-seed
-    differences: pool - concat and pool - concat_fresh at two views, pool at k - pool at two. Each row's
-    ``id`` names it for the pages' figures: ``pool@3``, ``concat@2``, ``pool-concat_fresh@2``, ``pool@3-2``."""
+    differences: at two views pool - concat, pool - concat_fresh and pool_2 - concat_fresh; at every count
+    pool - pool_2; pool at k - pool at two. Each row's ``id`` names it for the pages' figures: ``pool@3``,
+    ``concat@2``, ``pool-concat_fresh@2``, ``pool-pool_2@3``, ``pool@3-2``."""
     seeds = sorted({run.seed for run in results})
 
     def row(model: str, seed: int, k: int) -> dict | None:
@@ -296,18 +305,25 @@ def summary_rows(results: dict[Run, dict], settings: Settings) -> list[dict]:
             out[m], out[f"{m}_ci"], _ = t_interval([a[m] - (b[m] if b else 0.0) for a, b in pairs])
         return out
 
+    def paired(first: str, second: str, k: int, other_k: int | None = None) -> list[tuple[dict, dict]]:
+        return [(a, b) for s in seeds if (a := row(first, s, k)) and (b := row(second, s, other_k or k))]
+
     lines = []
     for model in MODELS:
-        for k in settings.eval_views if model == "pool" else (2,):
+        for k in Run(model, 0).counts(settings):
             found = [r for s in seeds if (r := row(model, s, k)) is not None]
             lines.append(line(model, NAMES[model], str(k), [(r, None) for r in found]))
-    for other in ("concat", "concat_fresh"):
-        pairs = [(a, b) for s in seeds if (a := row("pool", s, 2)) and (b := row(other, s, 2))]
-        lines.append(line(f"pool-{other}", f"`pool` − {NAMES[other]}", "2", pairs))
-    for k in settings.eval_views:
-        if k != 2:
-            pairs = [(a, b) for s in seeds if (a := row("pool", s, k)) and (b := row("pool", s, 2))]
-            lines.append(line("pool", "`pool`", f"{k} − 2", pairs))
+    # What generality costs at two views: the whole switch, then the head alone (the same start, two views).
+    for first, second in (("pool", "concat"), ("pool", "concat_fresh"), ("pool_2", "concat_fresh")):
+        lines.append(
+            line(f"{first}-{second}", f"{NAMES[first]} − {NAMES[second]}", "2", paired(first, second, 2))
+        )
+    for k in settings.eval_views:  # what training with a range of counts changes, at each count
+        lines.append(
+            line("pool-pool_2", f"{NAMES['pool']} − {NAMES['pool_2']}", str(k), paired("pool", "pool_2", k))
+        )
+    for k in settings.eval_views[1:]:  # what each further view buys
+        lines.append(line("pool", NAMES["pool"], f"{k} − 2", paired("pool", "pool", k, 2)))
     return lines
 
 
@@ -334,31 +350,42 @@ def markdown(lines: list[dict], results: dict[Run, dict], runs: list[Run], setti
         f"evaluations, {load['end'][0]} at the report. {len(results)} of {len(runs)} runs, {settings.steps} "
         f"steps each from `{settings.config}` at {settings.size}×{settings.size}; mean fit minutes: {minutes}.",
         "",
-        f"`pool` trained with {low} to {high} context views per batch, the `concat` rows with 2; each "
+        f"`pool` trained with {low} to {high} context views per batch, the other rows with 2; each "
         f"evaluated on the same {scenes} test scenes and target frames at every count. Mean ± half-width of "
-        f"the 95 % t-interval over seeds; the rows with − are paired by seed. Milliseconds per scene on the "
-        f"CPU, {meta['bench_threads']} thread (median of {settings.repeats} runs).",
+        f"the 95 % t-interval over seeds. Milliseconds per scene on the CPU, {meta['bench_threads']} thread "
+        f"(median of {settings.repeats} runs).",
         "",
-        "| model | context views | seeds | " + " | ".join(LABELS[m] for m in METRICS[:4]) + " |",
-        "| --- | ---: | ---: |" + " ---: |" * 4,
     ]
-    for x in lines:
-        cells = [_fmt(x[m], x[f"{m}_ci"], DIGITS[m]) for m in METRICS[:4]]
-        out.append(f"| {x['model']} | {x['context_views']} | {x['n']} | " + " | ".join(cells) + " |")
-    return "\n".join(out) + "\n"
+    header = " | seeds | " + " | ".join(LABELS[m] for m in METRICS[:4]) + " |"
+    paired = [x for x in lines if "−" in x["model"] + x["context_views"]]
+    for title, mine in (
+        ("model", [x for x in lines if x not in paired]),
+        ("difference, paired by seed", paired),
+    ):
+        out += [f"| {title} | context views{header}", "| --- | ---: | ---: |" + " ---: |" * 4]
+        for x in mine:
+            cells = [_fmt(x[m], x[f"{m}_ci"], DIGITS[m]) for m in METRICS[:4]]
+            out.append(f"| {x['model']} | {x['context_views']} | {x['n']} | " + " | ".join(cells) + " |")
+        out.append("")
+    return "\n".join(out)
 
 
 def plot(lines: list[dict], path: Path) -> None:
-    """PSNR, rotation error and forward + render ms against the number of context views: pool as a line, the
-    concat models as points at two (set a little apart), each with its 95 % interval."""
+    """PSNR, rotation error and forward + render ms against the number of context views: the pool models as
+    lines, the concat models as points at two (set a little apart), each with its 95 % interval."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    for i, (model, style) in enumerate(((NAMES["pool"], "o-"), (NAMES["concat"], "s"),
-                                        (NAMES["concat_fresh"], "^"))):  # fmt: skip
+    styles = (
+        (NAMES["pool"], "o-"),
+        (NAMES["pool_2"], "o--"),
+        (NAMES["concat"], "s"),
+        (NAMES["concat_fresh"], "^"),
+    )
+    for i, (model, style) in enumerate(styles):
         mine = [x for x in lines if x["model"] == model and x["context_views"].isdigit()]
         ks = [int(x["context_views"]) + 0.06 * i for x in mine]
         label = model.replace("`", "")

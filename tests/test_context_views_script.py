@@ -48,6 +48,7 @@ def test_summary_pairs_the_models_and_the_counts_by_seed():
         run("concat", 1): _saved([(2, 22.0)]),
         run("concat", 2): _saved([(2, 40.0)]),  # no pool run of seed 2: left out of the pairs
         run("concat_fresh", 1): _saved([(2, 21.0)]),
+        run("pool_2", 1): _saved([(2, 20.0), (3, 23.0)]),
     }
     lines = {(x["model"], x["context_views"]): x for x in script.summary_rows(results, _settings(script))}
     assert lines[("`pool`", "3")]["n"] == 2 and lines[("`pool`", "3")]["psnr"] == 22.25
@@ -58,7 +59,11 @@ def test_summary_pairs_the_models_and_the_counts_by_seed():
     fresh = lines[("`pool` − `concat`, fresh head", "2")]
     assert fresh["n"] == 1 and fresh["psnr"] == 1.0 and math.isnan(fresh["psnr_ci"])
     more = lines[("`pool`", "3 − 2")]  # what the third view buys: 1.0 and 1.5 dB
-    assert more["n"] == 2 and more["psnr"] == 1.25 and more["forward_ms"] == 10.0
+    assert more["n"] == 2 and more["psnr"] == 1.25 and more["forward_ms"] == 10.0 and more["id"] == "pool@3-2"
+    head = lines[("`pool`, trained with 2 − `concat`, fresh head", "2")]  # the head alone: 20 - 21
+    assert head["n"] == 1 and head["psnr"] == -1.0 and head["id"] == "pool_2-concat_fresh@2"
+    ranged = lines[("`pool` − `pool`, trained with 2", "3")]  # seed 1: 23.5 - 23
+    assert ranged["n"] == 1 and ranged["psnr"] == 0.5 and lines[("`pool`, trained with 2", "3")]["n"] == 1
 
 
 def test_counts_that_rendered_other_targets_stop_the_report():
