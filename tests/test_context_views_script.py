@@ -33,8 +33,8 @@ def _settings(script, **changes):
 def _saved(rows, targets=None):
     frames = {"a": {"context": "0 9", "target": targets or "3 6"}}
     rows = [{"context_views": k, "scenes": 1, "psnr": p, "rot_err_deg": 1.0, "forward_ms": 10.0 * k,
-             "render_ms": 5.0, "ssim": 0.5, "trans_err_deg": 2.0, "frames": frames}
-            for k, p in rows]  # fmt: skip
+             "render_ms": 5.0, "ssim": 0.5, "trans_err_deg": 2.0, "rot_err_target_deg": 1.5,
+             "trans_err_target_deg": 2.5, "frames": frames} for k, p in rows]  # fmt: skip
     return {"fit_seconds": 1.0, "rows": rows}
 
 
@@ -64,6 +64,14 @@ def test_summary_pairs_the_models_and_the_counts_by_seed():
     assert head["n"] == 1 and head["psnr"] == -1.0 and head["id"] == "pool_2-concat_fresh@2"
     ranged = lines[("`pool` − `pool`, trained with 2", "3")]  # seed 1: 23.5 - 23
     assert ranged["n"] == 1 and ranged["psnr"] == 0.5 and lines[("`pool`, trained with 2", "3")]["n"] == 1
+
+
+def test_a_run_evaluated_before_a_metric_was_added_is_evaluated_again():
+    script = _script()
+    saved = _saved([(2, 20.0)])
+    assert script.complete(saved)
+    del saved["rows"][0]["rot_err_target_deg"]
+    assert not script.complete(saved)
 
 
 def test_counts_that_rendered_other_targets_stop_the_report():

@@ -4,10 +4,12 @@ batches): a ``pool`` network takes them all, a ``concat`` one is refused in one 
 import csv
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import lightning as L
 import pytest
 import torch
+from torch import Tensor
 from torch.utils.data import DataLoader
 
 from aesplat.errors import UserError
@@ -187,3 +189,26 @@ def test_fit_with_a_range_then_test_and_bench_at_each_count_on_the_same_targets(
     for k in (2, 3, 4):
         assert not rows[f"{k} views"]["skipped"] and rows[f"{k} views"]["gaussians"] == k * SIZE * SIZE
     assert "carry no 9-view context" in rows["9 views"]["skipped"]
+
+
+def test_the_target_views_pose_errors_leave_the_other_context_views_out(tmp_path, monkeypatch):
+    """rot_err_deg averages over every view but view 0, rot_err_target_deg over the target views alone: the
+    same views at every count of context views."""
+    module = _module("pool", tmp_path)
+    batch = _batch(3, seed=0)  # views: context 0, 1, 2, then one target
+    truth = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1)
+
+    def turned(degrees: float) -> Tensor:  # a rotation about the camera's y axis
+        a = torch.tensor(degrees).deg2rad()
+        c, s = a.cos(), a.sin()
+        return torch.tensor([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]])
+
+    predicted = truth.clone()
+    predicted[:, 2] = predicted[:, 2] @ turned(30.0)  # the extra context view, 30° off
+    predicted[:, 3] = predicted[:, 3] @ turned(10.0)  # the target, 10° off
+    out = SimpleNamespace(extrinsics=predicted)
+    rendered = SimpleNamespace(color=batch.target.images.float() / 255)
+    monkeypatch.setattr(module, "forward", lambda *args, **kwargs: (out, rendered))
+    metrics, _ = module._evaluate(batch)
+    assert metrics["rot_err_deg"].tolist() == pytest.approx([40 / 3] * 2, abs=1e-3)  # views 1, 2, 3: 0, 30, 10
+    assert metrics["rot_err_target_deg"].tolist() == pytest.approx([10.0] * 2, abs=1e-3)
