@@ -83,12 +83,18 @@ def forward_flops(counts: list[int]) -> list[dict]:
     net, data = paper_network()
     side = int(data["image_size"])
     targets = int(data.get("num_target_views", 1))
+    batch = int(data["batch_size"])
     # torch.autocast has no meta device; the network only ever turns it off (fp32 geometry), as here.
     with mock.patch("torch.autocast", lambda *a, **k: contextlib.nullcontext()), torch.device("meta"):
         model = build_model(size=net["size"], appearance=net["appearance"], sh_degree=net["sh_degree"],
                             view_aggregation="pool")  # fmt: skip
         patch = model.cfg.encoder.patch_size
         tokens = (side // patch) ** 2 + 1 + model.cfg.transformer.num_register_tokens
+        relation, colour = model.appearance.gvsre.mlp, model.appearance.wcm.mlp  # Linear, GELU, Linear
+        # Floats the pool head keeps for the backward per (Gaussian, view) pair of each MLP: its input and
+        # its hidden layer before and after the GELU (the concatenations and masks beside them not counted).
+        per_relation = relation[0].in_features + 2 * relation[0].out_features
+        per_colour = colour[0].in_features + 2 * colour[0].out_features
         rows = []
         for k in counts:
             with FlopCounterMode(display=False) as counter:
@@ -100,6 +106,8 @@ def forward_flops(counts: list[int]) -> list[dict]:
                 "context_views": k, "target_views": targets, "image_size": side, "tokens_per_view": tokens,
                 "global_tokens": (k + targets) * tokens, "gaussians": k * side * side,
                 "pool_pairs": k * k * side * side, "gflops": counter.get_total_flops() / 1e9,
+                "batch_size": batch, "pool_saved_gib": 4 * batch * side * side
+                * (k * k * per_relation + k * (k - 1) * per_colour) / 2**30,
                 "encoder_gflops": gflops["encoder"], "attention_gflops": attention,
                 "transformer_other_gflops": gflops["transformer"] - attention,
                 "heads_gflops": gflops["depth_head"] + gflops["gaussian_head"] + gflops["camera_head"],
@@ -144,15 +152,19 @@ def markdown(record: dict) -> str:
         "",
         f"Computed for `{PAPER_CONFIG}` (the `large` network, {c0.get('image_size')}², "
         f"{c0.get('tokens_per_view')} tokens per view, {c0.get('target_views')} target view, batch 1): "
-        "GFLOPs of one model forward, counted on the meta device; a training step adds the backward, about "
-        "twice the forward, and the rendering of the targets.",
+        "GFLOPs of one model forward, counted on the meta device, and of it the geometry transformer's "
+        "attention and the appearance head; a training step adds the backward, about twice the forward, and "
+        "the rendering of the targets. Pool pairs: what the `pool` head keeps for the backward of its two "
+        f"per-pair MLPs at the configuration's batch of {c0.get('batch_size')} (float32; by formula, a lower "
+        "bound).",
         "",
-        "| context views | tokens (global) | Gaussians | GFLOPs | attention | appearance |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| context views | tokens (global) | Gaussians | GFLOPs | attention | appearance | pool pairs, GiB |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for c in computed:
         out.append(f"| {c['context_views']} | {c['global_tokens']:,} | {c['gaussians']:,} | {c['gflops']:,.0f} "
-                   f"| {c['attention_gflops']:,.0f} | {c['appearance_gflops']:,.1f} |")  # fmt: skip
+                   f"| {c['attention_gflops']:,.0f} | {c['appearance_gflops']:,.1f} | "
+                   f"{c['pool_saved_gib']:.2f} |")  # fmt: skip
     return "\n".join(out) + "\n"
 
 

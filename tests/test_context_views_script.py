@@ -118,6 +118,10 @@ def test_cost_counts_the_paper_network_per_count_and_resumes_its_measurements(tm
     # The paper's network at 224²: 16 x 16 patches + a camera token + 4 registers per view; one target view.
     assert two["tokens_per_view"] == 261 and three["global_tokens"] == 4 * 261
     assert three["gaussians"] == 3 * 224 * 224 and three["pool_pairs"] == 9 * 224 * 224
+    # The pool head's per-pair MLPs (relation: 5 -> 32 -> 32, colour: 10 -> 32 -> 32) at batch 10: 2 views
+    # give 4 relation and 2 colour pairs per pixel, 3 views 9 and 6.
+    assert two["pool_saved_gib"] == pytest.approx(4 * 10 * 224**2 * (4 * 69 + 2 * 74) / 2**30)
+    assert three["pool_saved_gib"] == pytest.approx(4 * 10 * 224**2 * (9 * 69 + 6 * 74) / 2**30)
     # One more view: the encoder grows with the views (3 -> 4), attention faster than the tokens.
     assert three["encoder_gflops"] / two["encoder_gflops"] == pytest.approx(4 / 3, rel=0.01)
     assert three["attention_gflops"] / two["attention_gflops"] > 1.5
