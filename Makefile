@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test test-slow test-torch-floor test-gpu test-slurm lint format docs docs-serve demo bench curves warmstart clean
+.PHONY: venv venv-torch-floor test test-slow test-torch-floor test-gpu test-slurm lint format docs docs-serve demo bench curves warmstart clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -44,6 +44,8 @@ $(FLOOR_STAMP): pyproject.toml
 	$(FLOOR_PY) -m pip uninstall --quiet --yes torchvision
 	$(FLOOR_PY) -c "import torch; v = torch.__version__; assert v == '$(TORCH_FLOOR)', v; print('torch', v)"
 	touch $(FLOOR_STAMP)
+
+venv-torch-floor: $(FLOOR_STAMP)
 
 test-torch-floor: $(FLOOR_STAMP)
 	$(FLOOR_PY) -c "import torch; print('torch', torch.__version__)"

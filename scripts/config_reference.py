@@ -68,6 +68,8 @@ def _type_name(annotation: Any) -> str:
 def _default(value: Any) -> str:
     if value is dataclasses.MISSING or value is inspect.Parameter.empty:
         return "required"
+    if dataclasses.is_dataclass(value):  # a typed section of its own, listed below
+        return "see below"
     if isinstance(value, tuple):
         value = list(value)
     return yaml.safe_dump(value, default_flow_style=True, width=1000).strip().removesuffix("...").strip()
@@ -120,6 +122,7 @@ def sections() -> list[tuple[str, str, list[tuple[str, str, str, str]]]]:
     """(dotted section, what it is, rows of (key, type, default, meaning)), in the order a config lists them."""
     from aesplat.cli import WandbConfig
     from aesplat.data import DataModule
+    from aesplat.model import NetOptions
     from aesplat.render import RenderSettings
     from aesplat.train import AESplatModule
 
@@ -136,6 +139,11 @@ def sections() -> list[tuple[str, str, list[tuple[str, str, str, str]]]]:
     return [
         ("model", "the LightningModule's own argument", model_rows),
         ("model.net", "the network: the arguments of `build_model`", _rows_of_dataclass(config_class("net"))),
+        (
+            "model.net.options",
+            "the other `build_model` keywords (`NetOptions`; null keeps the size preset's value)",
+            _rows_of_dataclass(NetOptions),
+        ),
         ("model.loss", "loss weights and training-only levers", _rows_of_dataclass(config_class("loss"))),
         (
             "model.optim",

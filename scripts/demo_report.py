@@ -41,8 +41,9 @@ import torch  # noqa: E402
 from figures import provenance, write_whole  # noqa: E402
 
 from aesplat.bench import evaluation_scenes  # noqa: E402
+from aesplat.checkpoint import LoadedCheckpoint, load_checkpoint, run_config  # noqa: E402
 from aesplat.model import forward_batch  # noqa: E402
-from aesplat.predict import LoadedCheckpoint, colorize_depth, load_checkpoint, run_config  # noqa: E402
+from aesplat.predict import colorize_depth  # noqa: E402
 from aesplat.render import render  # noqa: E402
 from aesplat.train.metrics import COPY_BEST, COPY_MEAN, context_copy_psnr, psnr  # noqa: E402
 
@@ -131,7 +132,7 @@ def initial_model(config: dict, device: torch.device) -> torch.nn.Module:
     """The untrained model exactly as `aesplat fit` started: the run's seed, then the model build."""
     from lightning.pytorch import seed_everything
 
-    from aesplat.model import build_model
+    from aesplat.model import NetOptions, build_model
 
     net = dict(config["model"]["net"])
     seed = config.get("seed_everything")
@@ -144,7 +145,7 @@ def initial_model(config: dict, device: torch.device) -> torch.nn.Module:
         near=net["near"],
         far=net["far"],
         weights=net.get("weights"),
-        **net.get("options", {}),
+        **NetOptions(**(net.get("options") or {})).given(),
     )
     return model.to(device).eval()  # fmt: skip
 
@@ -162,7 +163,7 @@ def render_grid(
     columns = ["context 0", "context 1", "target", f"{start} render", "trained render", "rendered depth"]
     fig, axes = plt.subplots(len(scenes), len(columns), figsize=(2.2 * len(columns), 2.3 * len(scenes)),
                              squeeze=False)  # fmt: skip
-    options = {**trained.render.get("options", {}), "background": trained.background}
+    options = trained.render_options()
     options.pop("compile", None)
     psnrs: dict[str, dict[str, float]] = {}
     for row, scene in enumerate(scenes):

@@ -172,8 +172,9 @@ def test_overwrite_deletes_the_run_dir_but_never_the_working_folder(tmp_path, mo
     run_dir = tmp_path / "run"
     (run_dir / "checkpoints").mkdir(parents=True)
     (run_dir / "checkpoints" / "last.ckpt").write_bytes(b"old")
+    (run_dir / ".lock").write_text("held by this fit")
     cli.clear_run_dir(run_dir)
-    assert not run_dir.exists()
+    assert [p.name for p in run_dir.iterdir()] == [".lock"]  # the lock stays with the fit that deletes
     monkeypatch.chdir(tmp_path)
     for folder in (tmp_path, tmp_path.parent, Path(".")):
         with pytest.raises(ValueError, match="--overwrite will not delete"):

@@ -109,7 +109,7 @@ def test_demo_from_scratch_is_the_demo_from_a_random_start(parsed):
         demo["model"]["net"]["weights"] == "weights/demo-warmstart.pt"
         and scratch["model"]["net"]["weights"] is None
     )
-    assert scratch["model"]["net"]["options"] == {}  # the overlay's empty dict replaces the correlation branch
+    assert scratch["model"]["net"]["options"]["camera_correlation"] is False  # no correlation branch
     assert (scratch["model"]["optim"]["lr"], scratch["model"]["optim"]["appearance_lr"]) == (5e-4, 1e-3)
     assert differences(demo, scratch) == {
         "trainer.default_root_dir", "model.net.weights", "model.net.options.camera_correlation",
@@ -191,7 +191,7 @@ def test_configs_without_removed_keys_pass_the_check():
 def test_unknown_render_option_is_named_with_the_known_ones():
     with pytest.raises(ValueError, match=r"model.render.options: unknown key\(s\) \['tile_sise'\].*tile_size"):
         RasterizerConfig(options={"tile_sise": 8})
-    assert RasterizerConfig(options={"tile_size": 16}).options == {"tile_size": 16}
+    assert RasterizerConfig(options={"tile_size": 16}).options.tile_size == 16
 
 
 def test_demo_pool_is_the_demo_with_the_pool_head_and_a_range_of_counts(parsed):

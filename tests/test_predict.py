@@ -167,15 +167,15 @@ def test_load_checkpoint_restores_the_trained_weights(tiny_ckpt):
 
 
 def test_load_checkpoint_errors(tmp_path):
-    with pytest.raises(FileNotFoundError, match="not found"):
+    with pytest.raises(FileNotFoundError, match="nope.ckpt does not exist"):
         load_checkpoint(tmp_path / "nope.ckpt")
     torch.save({"something": 1}, tmp_path / "other.ckpt")
-    with pytest.raises(ValueError, match="not an aesplat checkpoint"):
+    with pytest.raises(ValueError, match="not a Lightning checkpoint"):
         load_checkpoint(tmp_path / "other.ckpt")
     (tmp_path / "text.ckpt").write_text("hello")
     with pytest.raises(ValueError, match="text.ckpt is not a torch file"):
         load_checkpoint(tmp_path / "text.ckpt")
-    with pytest.raises(SystemExit, match="aesplat predict: .*not an aesplat checkpoint"):
+    with pytest.raises(SystemExit, match="aesplat predict: .*not a Lightning checkpoint"):
         main(["--ckpt", str(tmp_path / "other.ckpt"), "--out", str(tmp_path / "out"), "a.png", "b.png"])
     assert not (tmp_path / "out").exists()
 
@@ -494,7 +494,7 @@ def test_overwrite_replaces_the_folder_whole_and_a_failure_leaves_it_untouched(
         raise OSError("disk full")
 
     monkeypatch.setattr(predict, "write_ply", broken_ply)  # fails after the renders are written
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(SystemExit, match="aesplat predict: disk full"):  # one line, as every OSError
         main([*args, *images])
     assert tree(out) == before and sorted(p.name for p in tmp_path.iterdir()) == ["0.png", "1.png", "out"]
     monkeypatch.undo()

@@ -48,10 +48,10 @@ import torch.nn.functional as F
 from torch import Tensor
 from tqdm import tqdm
 
+from .commands import HelpFormatter, OneLineParser, resolve_device
 from .errors import UserError
 from .export import drop_transparent, keep_most_opaque
 from .model import forward_batch
-from .predict import HelpFormatter
 from .render import render
 from .threads import ENV_OVERRIDE, apply_thread_policy
 from .train.metrics import psnr, relative_pose_errors, ssim
@@ -623,7 +623,7 @@ def _names(text: str) -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="aesplat bench",
         description="Accuracy versus time: sweep every quality knob of a trained model on evaluation scenes "
         "and write tables (markdown, CSV) and a plot of PSNR/SSIM against milliseconds.",
@@ -712,6 +712,10 @@ def evaluation_stream(loaded, data_root: str | None, image_size: int | None, con
         raise SystemExit("aesplat bench: no config.yaml beside the checkpoint's run; give --data-root DIR")
     if image_size is not None:
         data["image_size"] = image_size
+    elif loaded.trained_size is not None:
+        data["image_size"] = loaded.trained_size
+    else:
+        raise UserError(f"{loaded.path} does not say which image size it was trained at: give --image-size")
     if context_views is not None:
         data["num_context_views"] = context_views
     data.update(num_workers=0, eval_batch_size=1)
@@ -747,16 +751,13 @@ def context_views_of(
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``aesplat bench`` (see ``--help``)."""
-    from .predict import load_checkpoint, resolve_device
+    from .checkpoint import load_checkpoint
     from .render import get_backend
 
     args = build_parser().parse_args(argv)
     apply_thread_policy(num_workers=0, override=args.threads)  # the scenes are read in this process
     device = resolve_device(args.device)
-    try:
-        loaded = load_checkpoint(args.ckpt, device)
-    except (FileNotFoundError, ValueError) as err:
-        raise SystemExit(f"aesplat bench: {err}") from err
+    loaded = load_checkpoint(args.ckpt, device)  # a UserError is one line (aesplat.cli reports it)
     scenes = evaluation_scenes(loaded, args.data_root, args.image_size, args.scenes, device,
                                args.data_context_views)  # fmt: skip
     if not scenes:
@@ -775,7 +776,7 @@ def main(argv: list[str] | None = None) -> int:
         precisions=args.precisions, tile_sizes=[int(t) for t in args.tile_sizes], compiled=args.compile,
         knobs=args.knobs,
     )  # fmt: skip
-    render_kwargs = {**loaded.render.get("options", {}), "background": loaded.background.to(device)}
+    render_kwargs = loaded.render_options(device)
     render_kwargs.pop("compile", None)  # compiling is a knob of its own here
     bench = Bench(loaded.model, scenes, device, repeats=args.repeats, warmup=args.warmup,
                   render_kwargs=render_kwargs, progress=not args.no_progress,

@@ -8,22 +8,31 @@
 
 fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
-and the data, the parser holds four sections: ``checkpoint`` (ModelCheckpoint: best by val/psnr),
-``last_checkpoint`` (ModelCheckpoint: last.ckpt every N steps), ``throughput`` and ``wandb``, plus ``threads``
-(torch CPU threads; default from ``aesplat.threads``: usable cores minus ``data.num_workers``). Everything
-a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml;
-each test / validate writes its config.yaml and results into a folder of its own, ``test-<UTC time>/`` (under
+and the data, the parser holds four sections: ``checkpoint`` (best by val/psnr), ``last_checkpoint``
+(last.ckpt every N steps and at the end of every fit), ``throughput`` and ``wandb``, plus ``threads`` (torch
+CPU threads; default from ``aesplat.threads``: usable cores minus ``data.num_workers``). Everything a run
+writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/, config.yaml; each
+test / validate writes its config.yaml and results into a folder of its own, ``test-<UTC time>/`` (under
 ``model.eval.output_dir`` if set, else the run directory), the newest behind the link ``test-latest``: an
-evaluation never changes the training run's files. ``fit`` refuses a run directory that already holds a run
-unless ``--ckpt_path last`` (resume) or ``--overwrite`` (delete it and start afresh). ``--ckpt_path last``
-resumes from the newest of checkpoints/last.ckpt and a SLURM requeue checkpoint in that directory (and starts
-fresh when there is none). With ``--ckpt_path FILE``, LightningCLI takes the ``model`` section from the
-checkpoint's hyper-parameters (``model.cameras`` included), so a checkpoint evaluates as it was trained,
-whatever the config file says; a ``--model.*`` flag that the checkpoint overrides is named on stderr.
-``model.eval`` (where and what an evaluation writes) stays the command's.
+evaluation never changes the training run's files.
 
-The inputs (data root, checkpoint, weights file, run directory) are checked before anything is created or
-loaded; a user's error stops with one line (``AESPLAT_DEBUG=1``: with its traceback), see
+``fit`` refuses a run directory that already holds a run unless ``--ckpt_path last`` (resume) or
+``--overwrite`` (delete it and start afresh; never a folder holding the current one, the home folder or one
+of the run's inputs), and a run directory another ``aesplat fit`` is training in (a lock). A fit that stops
+before its first checkpoint takes back its run markers (config.yaml, wandb id). Checkpoints are written
+atomically (``aesplat.train.checkpoint_io``); a fit stopped by a signal saves where it stopped and exits with
+128 + the signal (``aesplat.train.signals``).
+
+``--ckpt_path FILE|last|best`` goes through ``aesplat.checkpoint``, the loading path every command shares:
+``last`` is the newest checkpoint of the run directory that loads (``fit`` starts fresh when there is none),
+``best`` the one with the best validation score; the file is read safely, and its hyper-parameters are
+checked (values of known settings, never a class) before they replace the ``model`` section, so a checkpoint
+evaluates or resumes as it was trained, whatever the config file says; a ``--model.*`` flag that the
+checkpoint overrides is named on stderr. ``model.eval`` (where and what an evaluation writes) stays the
+command's.
+
+The inputs (config values, data root, checkpoint, weights file, run directory) are checked before anything is
+created or loaded; a user's error stops with one line (``AESPLAT_DEBUG=1``: with its traceback), see
 docs/troubleshooting.md.
 """
 
@@ -31,15 +40,22 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import signal
 import sys
 import warnings
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from aesplat.errors import MissingFileError, UserError, check_writable, debug, run_reporting_user_errors
+from aesplat.errors import (
+    MissingFileError,
+    Stopped,
+    UserError,
+    check_writable,
+    debug,
+    run_reporting_user_errors,
+    signal_name,
+)
 
 DEFAULT_RUN_DIR = "outputs/run"
 
@@ -58,16 +74,20 @@ class WandbConfig:
 def _lightning_cli():
     """Build the LightningCLI subclass (imports Lightning and the data/model stack only when needed)."""
     from jsonargparse import ActionYesNo
-    from lightning.pytorch.callbacks import ModelCheckpoint
     from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
     from lightning.pytorch.loggers import WandbLogger
+    from lightning.pytorch.plugins.io import CheckpointIO
 
+    from aesplat.checkpoint import checked_hparams, checkpoint_sections, read_checkpoint, resolve_ckpt_path
+    from aesplat.config_checks import check_config
     from aesplat.data import DataModule
+    from aesplat.files import check_deletable, remove_partials
     from aesplat.threads import apply_thread_policy
     from aesplat.train import AESplatModule
-    from aesplat.train.callbacks import Throughput
-    from aesplat.train.requeue import RequeueAtStepBoundary
-    from aesplat.train.run_dir import latest_checkpoint, point_latest, wandb_mode, wandb_run_id
+    from aesplat.train.callbacks import DataRecord, RunCheckpoint, Throughput
+    from aesplat.train.checkpoint_io import AtomicCheckpointIO
+    from aesplat.train.run_dir import FitWrites, lock_run, point_latest, wandb_mode, wandb_run_id
+    from aesplat.train.signals import SignalsAtStepBoundary
 
     class OneLineParser(LightningArgumentParser):
         """A command-line or config error is one line (the key and what is wrong), not the usage text."""
@@ -97,6 +117,9 @@ def _lightning_cli():
                                  overwrite=True, multifile=self.multifile)  # fmt: skip
 
     class AESplatCLI(LightningCLI):
+        # Called when the command fails or stops (a fit that saved no checkpoint takes back its run markers).
+        on_failure: list[Callable[[], object]] = []
+
         @staticmethod
         def subcommands() -> dict[str, set[str]]:
             commands = dict(LightningCLI.subcommands())
@@ -104,10 +127,11 @@ def _lightning_cli():
             return commands
 
         def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-            # Best by val/psnr (written after validation) and last (every N steps; a resume from any step,
-            # mid-epoch included, continues exactly: see aesplat.data.stream).
-            parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
-            parser.add_lightning_class_args(ModelCheckpoint, "last_checkpoint")
+            # Best by val/psnr (written after validation) and last (every N steps and at the end; a resume from
+            # any step, mid-epoch included, continues exactly: see aesplat.data.stream). Always the same file
+            # names: a run folder holds one run.
+            parser.add_lightning_class_args(RunCheckpoint, "checkpoint")
+            parser.add_lightning_class_args(RunCheckpoint, "last_checkpoint")
             parser.set_defaults(
                 {
                     "checkpoint.monitor": "val/psnr",
@@ -136,43 +160,96 @@ def _lightning_cli():
             super().parse_arguments(parser, args)
 
         def _parse_ckpt_path(self) -> None:
-            """Check ``--ckpt_path`` before Lightning reads it; name each ``--model.*`` flag it overrides; keep
-            the command's ``model.eval`` (where and what the evaluation writes)."""
+            """Replaces Lightning's: ``--ckpt_path FILE|last|best`` resolved and read through
+            ``aesplat.checkpoint`` (its checked settings replace the ``model`` section, ``model.eval`` kept),
+            then every config value and input checked, all before anything is written."""
             sub = self.config.get("subcommand")
             if not sub:
                 return
             cfg = self.config[sub]
             cfg.trainer.default_root_dir = cfg.trainer.default_root_dir or DEFAULT_RUN_DIR
-            ckpt_path = cfg.get("ckpt_path")
-            if ckpt_path and not (sub == "fit" and ckpt_path == "last"):
-                check_lightning_checkpoint(ckpt_path, sub)
-                self._take_model_from_checkpoint(sub, ckpt_path)
-            check_inputs(sub, self.config[sub])  # before the seed is set: a refusal prints nothing else
+            run_dir = Path(cfg.trainer.default_root_dir)
+            asked = cfg.get("ckpt_path")
+            if asked:
+                if sub == "fit" and asked == "last" and cfg.overwrite:
+                    raise UserError("--overwrite deletes the run that --ckpt_path last would resume: give one")
+                if asked not in ("last", "best") and not Path(asked).exists():
+                    resume = ", or `--ckpt_path last` to resume the run in --trainer.default_root_dir"
+                    raise MissingFileError(
+                        f"--ckpt_path {asked} does not exist: give RUN/checkpoints/last.ckpt of `aesplat fit`"
+                        + (resume if sub == "fit" else "")
+                    )
+                fresh = sub == "fit" and asked == "last"
+                path, skipped = resolve_ckpt_path(asked, run_dir, cfg.checkpoint.monitor, cfg.checkpoint.mode,
+                                                  fresh_if_none=fresh)  # fmt: skip
+                for problem in skipped:
+                    print(f"aesplat {sub}: {problem}; skipped", file=sys.stderr)
+                if path is None:
+                    print("no checkpoint to resume from: starting fresh")
+                else:
+                    ckpt = read_checkpoint(path)
+                    self._take_model_from_checkpoint(sub, ckpt, path)
+                    if asked in ("last", "best"):
+                        step = ckpt.get("global_step")
+                        verb = "resuming from" if sub == "fit" else f"--ckpt_path {asked}:"
+                        print(f"{verb} {path} (step {step})" + (", the newest that loads" if skipped else ""))
+                self.config[sub].ckpt_path = None if path is None else str(path)
+            # Before the seed is set: a refusal prints nothing else.
+            check_config(sub, self.config[sub])
+            check_inputs(sub, self.config[sub], resuming=bool(asked))
 
-        def _take_model_from_checkpoint(self, sub: str, ckpt_path: str) -> None:
+        def _take_model_from_checkpoint(self, sub: str, ckpt: dict, path: Path) -> None:
+            """The checkpoint's checked model settings replace the command's; name the flags they override."""
             before = self.config[sub].clone()
-            super()._parse_ckpt_path()
+            sections = checkpoint_sections()
+            settings = checked_hparams(ckpt, path, sections)
+            settings.pop("eval", None)  # where and what an evaluation writes is the command's
+            try:  # each section whole (the defaults of this version where the checkpoint predates a key)
+                model = {
+                    name: value if name == "cameras" else asdict(sections[name](**value))
+                    for name, value in settings.items()
+                }
+            except (TypeError, ValueError) as err:
+                raise UserError(f"checkpoint {path}: {err}") from None
+            if model:
+                self.parser.exit_on_error = False
+                try:
+                    self.config = self.parser.parse_object({sub: {"model": model}}, self.config)
+                except Exception as err:  # noqa: BLE001 - jsonargparse's own error types vary by version
+                    raise UserError(f"checkpoint {path}: its model settings do not fit this version "
+                                    f"({parser_error_line(str(err))})") from None  # fmt: skip
+                finally:
+                    self.parser.exit_on_error = True
             cfg = self.config[sub]
             cfg.model.eval = before.model.eval
             for key in explicit_keys(self.argv, "model."):
                 if key.startswith("model.eval") or before.get(key) == cfg.get(key):
                     continue
-                print(f"aesplat {sub}: --{key} {before.get(key)} has no effect: the checkpoint {ckpt_path} "
+                print(f"aesplat {sub}: --{key} {before.get(key)} has no effect: the checkpoint {path} "
                       f"sets it to {cfg.get(key)} (with --ckpt_path, the checkpoint's model settings win)",
                       file=sys.stderr)  # fmt: skip
 
         def before_instantiate_classes(self) -> None:
             cfg = self.config[self.subcommand]
-            run_dir = cfg.trainer.default_root_dir
-            if self.subcommand == "fit" and cfg.overwrite and launching_process():
-                clear_run_dir(run_dir)
+            run_dir = Path(cfg.trainer.default_root_dir)
+            if self.subcommand == "fit" and launching_process():
+                inputs = fit_inputs(cfg, self.argv)
+                if cfg.overwrite:
+                    check_deletable(run_dir, "--overwrite", inputs)
+                writes = FitWrites(run_dir)
+                lock_run(run_dir)  # one fit at a time in a run folder, from here to the end of the process
+                if cfg.overwrite:
+                    clear_run_dir(run_dir, inputs)
+                writes.snapshot()
+                self.on_failure.append(writes.discard_if_untrained)
+                remove_partials(run_dir / "checkpoints")  # of a save that was killed
             if self.subcommand in ("test", "validate"):
                 cfg.model.eval.output_dir = shared_evaluation_dir(
                     cfg.model.eval.output_dir or run_dir, self.subcommand
                 )
             for key in ("checkpoint", "last_checkpoint"):
                 if cfg[key].dirpath is None:
-                    cfg[key].dirpath = str(Path(run_dir) / "checkpoints")
+                    cfg[key].dirpath = str(run_dir / "checkpoints")
             apply_thread_policy(cfg.data.num_workers, cfg.threads, processes=_local_processes(cfg.trainer))
 
         def instantiate_classes(self) -> None:
@@ -181,7 +258,7 @@ def _lightning_cli():
             except UserError:
                 raise
             except ValueError as err:  # a config value the model or the data refuse (size, near/far, ...)
-                raise UserError(f"invalid configuration: {err}") from err
+                raise UserError(f"invalid configuration: {parser_error_line(str(err))}") from err
 
         def instantiate_trainer(self, **kwargs):
             cfg = self.config_init[self.subcommand]
@@ -194,16 +271,29 @@ def _lightning_cli():
                     project=wb.project, entity=wb.entity, name=wb.name or run_dir.name, save_dir=str(run_dir),
                     id=wandb_run_id(run_dir), offline=mode == "offline", tags=list(wb.tags), **extra,
                 )  # fmt: skip
+            plugins = cfg.trainer.get("plugins") or []
+            plugins = list(plugins) if isinstance(plugins, (list, tuple)) else [plugins]
+            if not any(isinstance(p, CheckpointIO) for p in plugins):  # checkpoints written whole, read safely
+                kwargs["plugins"] = [*plugins, AtomicCheckpointIO()]
             trainer = super().instantiate_trainer(**kwargs)
-            trainer.callbacks.append(RequeueAtStepBoundary())  # SLURM preemption between steps only
+            self.signals = SignalsAtStepBoundary()  # stop and SLURM requeue between steps only
+            trainer.callbacks += [self.signals, DataRecord()]
             return trainer
 
-        def before_fit(self) -> None:
-            fit = self.config_init["fit"]
-            if fit.get("ckpt_path") == "last":
-                found = latest_checkpoint(fit.trainer.default_root_dir)
-                fit["ckpt_path"] = str(found) if found else None
-                print(f"resuming from {found}" if found else "no checkpoint to resume from: starting fresh")
+        def after_fit(self) -> None:
+            """A fit a signal stopped ends with 128 + the signal, saying where it stopped and what it saved."""
+            signum = self.signals.stop_signal
+            if signum is None:
+                return
+            saved = [
+                c.last_model_path
+                for c in self.trainer.checkpoint_callbacks
+                if getattr(c, "last_model_path", "")
+            ]
+            where = f"saved {saved[-1]}" if saved else "nothing to save yet"
+            step = self.trainer.global_step
+            raise Stopped(signum, f"stopped by {signal_name(signum)} after step {step}; {where}: resume with "
+                          "--ckpt_path last")  # fmt: skip
 
         def after_test(self) -> None:
             self._point_latest()
@@ -241,37 +331,48 @@ def explicit_keys(argv: Sequence[str], prefix: str) -> list[str]:
     return [k.removesuffix("+") for k in keys]
 
 
+def config_files(argv: Sequence[str]) -> list[Path]:
+    """The files given with ``-c FILE`` / ``--config FILE`` / ``--config=FILE``, in order."""
+    files = []
+    for i, arg in enumerate(argv):
+        if arg in ("-c", "--config") and i + 1 < len(argv):
+            files.append(Path(argv[i + 1]))
+        elif arg.startswith("--config="):
+            files.append(Path(arg.split("=", 1)[1]))
+    return files
+
+
+def read_config_file(path: Path) -> dict:
+    """A ``-c`` file as a mapping; UserError naming the file, line and column of a YAML error."""
+    import yaml
+
+    try:
+        config = yaml.safe_load(path.read_text())
+    except UnicodeDecodeError:
+        raise UserError(f"-c {path} is not a text file: give a YAML config") from None
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        tab = "\t" in path.read_text().splitlines()[mark.line] if mark else False
+        fix = ": indent with spaces, YAML does not allow tabs" if tab else ""
+        raise UserError(f"-c {path} is not valid YAML{where} ({problem}){fix}") from None
+    if config is None:
+        return {}
+    if not isinstance(config, dict):
+        kind = type(config).__name__
+        raise UserError(f"-c {path} holds a {kind}, not a mapping of sections (trainer:, model:, data:, ...)")
+    return config
+
+
 def launching_process() -> bool:
     """Whether this is the process a user started (not a DDP rank Lightning or SLURM started beside it)."""
     return all(os.environ.get(v, "0") == "0" for v in ("LOCAL_RANK", "NODE_RANK", "SLURM_PROCID"))
 
 
-def check_lightning_checkpoint(path: str, command: str) -> None:
-    """``--ckpt_path FILE`` must be a readable Lightning checkpoint; the error names what the file is."""
-    from aesplat.model.weights import KIND_NAMES, checkpoint_kind, read_torch_file
-
-    if command != "fit" and path in ("last", "best"):
-        return
-    if not Path(path).is_file():
-        raise MissingFileError(
-            f"--ckpt_path {path} does not exist: give RUN/checkpoints/last.ckpt of `aesplat fit`"
-            + (
-                ", or `--ckpt_path last` to resume the run in --trainer.default_root_dir"
-                if command == "fit"
-                else ""
-            )
-        )
-    kind = checkpoint_kind(read_torch_file(path, "checkpoint"))
-    if kind == "lightning":
-        return
-    hint = (
-        "give it as --model.net.weights FILE instead" if kind != "other" else "give RUN/checkpoints/last.ckpt"
-    )
-    raise UserError(f"--ckpt_path {path} is {KIND_NAMES[kind]}, not a Lightning checkpoint: {hint}")
-
-
-def check_inputs(command: str, cfg) -> None:
-    """Every input a run needs, checked before the trainer, wandb or the model start (one line each)."""
+def check_inputs(command: str, cfg, resuming: bool = False) -> None:
+    """Every input a run needs, checked before the trainer, wandb or the model start (one line each).
+    ``resuming``: ``--ckpt_path`` was given (``last`` with nothing to resume from included)."""
     from aesplat.data.datamodule import find_shards, validation_split
     from aesplat.model.weights import read_torch_file
     from aesplat.train.run_dir import run_artifacts
@@ -284,7 +385,7 @@ def check_inputs(command: str, cfg) -> None:
             # validation runs on the validation split; on the test split only when data.validate_on_test asks
             find_shards(cfg.data.root, validation_split(cfg.data.root, cfg.data.get("validate_on_test", False)))
         held = run_artifacts(run_dir) if launching_process() else []
-        if held and ckpt_path is None and not cfg.overwrite:
+        if held and ckpt_path is None and not resuming and not cfg.overwrite:
             raise UserError(
                 f"{run_dir} already holds a run ({held[0].relative_to(run_dir)}): resume it with --ckpt_path "
                 "last, give a new --trainer.default_root_dir, or --overwrite to delete it and start afresh"
@@ -299,6 +400,13 @@ def check_inputs(command: str, cfg) -> None:
         writable_parent(Path(cfg.model.eval.output_dir), "--model.eval.output_dir")
 
 
+def fit_inputs(cfg, argv: Sequence[str]) -> list[tuple[str, str | Path | None]]:
+    """What ``aesplat fit`` reads, named by its option: ``--overwrite`` never deletes a folder holding one."""
+    weights = cfg.model.net.get("weights") if cfg.model.get("net") else None
+    return [("--data.root", cfg.data.root), ("--ckpt_path", cfg.get("ckpt_path")),
+            ("--model.net.weights", weights), *(("-c", path) for path in config_files(argv))]  # fmt: skip
+
+
 def writable_parent(folder: Path, flag: str) -> None:
     """``folder`` is (or can be made) a folder this process may write into."""
     if folder.exists() and not folder.is_dir():
@@ -306,15 +414,17 @@ def writable_parent(folder: Path, flag: str) -> None:
     check_writable(folder, f"{flag} {folder}")
 
 
-def clear_run_dir(run_dir: str | Path) -> None:
-    """``--overwrite``: delete the run directory (never the current folder, one holding it, or the home)."""
-    run_dir = Path(run_dir).resolve()
-    cwd = Path.cwd().resolve()
-    if run_dir in (cwd, *cwd.parents, Path.home().resolve()):
-        raise UserError(f"--overwrite will not delete {run_dir}: give a run directory of its own")
-    if run_dir.exists():
-        shutil.rmtree(run_dir)
-        print(f"aesplat fit: --overwrite: deleted {run_dir}", file=sys.stderr)
+def clear_run_dir(run_dir: str | Path, inputs: Sequence[tuple[str, str | Path | None]] = ()) -> None:
+    """``--overwrite``: delete what the run directory holds (its lock stays with this process), never a
+    folder holding the current folder, the home folder or one of the run's ``inputs``."""
+    from aesplat.files import delete_folder
+    from aesplat.train.run_dir import LOCK_FILE
+
+    run_dir = Path(run_dir)
+    existed = run_dir.exists() and any(p.name != LOCK_FILE for p in run_dir.iterdir())
+    delete_folder(run_dir, "--overwrite", inputs, keep=(LOCK_FILE,))
+    if existed:
+        print(f"aesplat fit: --overwrite: deleted what {run_dir} held", file=sys.stderr)
 
 
 def shared_evaluation_dir(base: str | Path, command: str) -> str:
@@ -353,22 +463,16 @@ REMOVED_KEYS = {
 
 
 def removed_key_error(argv: Sequence[str]) -> str | None:
-    """One line naming the first removed key ``argv`` sets (``--key`` or a key of a ``-c`` file), or None."""
-    import yaml
-
-    for i, arg in enumerate(argv):
+    """One line naming the first removed key ``argv`` sets (``--key`` or a key of a ``-c`` file), or None.
+    A ``-c`` file that is not a YAML mapping is refused on the way (UserError)."""
+    for arg in argv:
         key = arg[2:].split("=", 1)[0] if arg.startswith("--") else ""
         if key in REMOVED_KEYS:
             return f"--{key} was removed; {REMOVED_KEYS[key]}"
-        if arg in ("-c", "--config") and i + 1 < len(argv):
-            path = Path(argv[i + 1])
-        elif arg.startswith("--config="):
-            path = Path(arg.split("=", 1)[1])
-        else:
-            continue
+    for path in config_files(argv):
         if not path.is_file():
             continue  # LightningCLI says so
-        config = yaml.safe_load(path.read_text()) or {}
+        config = read_config_file(path)
         for dotted in REMOVED_KEYS:
             section, name = dotted.split(".")
             if isinstance(config.get(section), dict) and name in config[section]:
@@ -384,23 +488,29 @@ def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None
         warnings.filterwarnings("ignore", message=pattern)
     cli_class, default_module, data_class, parser_class, save_config = _lightning_cli()
     module_class = module_class or default_module
-    cli_class(
-        module_class,
-        data_class,
-        args=None if list(argv) == sys.argv[1:] else list(argv),  # None: LightningCLI reads sys.argv itself
-        parser_kwargs={"parser_mode": "omegaconf"},
-        parser_class=parser_class,
-        save_config_callback=save_config,
-        save_config_kwargs={"overwrite": True},
-        auto_configure_optimizers=False,
-    )
+    cli_class.on_failure = []
+    try:
+        cli_class(
+            module_class,
+            data_class,
+            args=None if list(argv) == sys.argv[1:] else list(argv),  # None: LightningCLI reads sys.argv itself
+            parser_kwargs={"parser_mode": "omegaconf"},
+            parser_class=parser_class,
+            save_config_callback=save_config,
+            save_config_kwargs={"overwrite": True},
+            auto_configure_optimizers=False,
+        )
+    except BaseException:
+        for cleanup in cli_class.on_failure:
+            cleanup()
+        raise
 
 
 def hold_requeue_signal() -> bool:
     """Inside a SLURM job, block SIGUSR1 (the requeue signal) in this thread; True if it did so.
 
     Called before torch is imported (which starts a thread): every thread and process started afterwards
-    inherits the mask, so the signal waits, pending, for ``aesplat.train.requeue.RequeueAtStepBoundary``.
+    inherits the mask, so the signal waits, pending, for ``aesplat.train.signals.SignalsAtStepBoundary``.
     """
     if sys.platform == "win32" or "SLURM_JOB_ID" not in os.environ:
         return False

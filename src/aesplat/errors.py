@@ -2,19 +2,28 @@
 
 A :class:`UserError` is something the person at the keyboard can mend (a missing file, a bad value, a
 checkpoint of the wrong kind); the ``aesplat`` entry points print it as ``aesplat COMMAND: message`` on
-stderr and exit with status 1 (a malformed command line exits with 2, as argparse does). Anything else is a
-bug and keeps its traceback. ``AESPLAT_DEBUG=1`` shows the traceback of user errors too.
+stderr and exit with status 1 (a malformed command line exits with 2, as argparse does). An ``OSError`` (a
+full disk, a read-only or vanished folder, a file without permission) is reported the same way, naming the
+file. A command stopped by a signal (SIGTERM, SIGINT, SIGHUP) exits with 128 + the signal's number, so that
+``aesplat fit … && aesplat test …`` never mistakes a stopped run for a finished one. Anything else is a bug and
+keeps its traceback. ``AESPLAT_DEBUG=1`` shows the traceback of user errors too.
 """
 
 from __future__ import annotations
 
+import errno
 import os
-from collections.abc import Callable
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import NoReturn, TypeVar
 
 DEBUG_ENV = "AESPLAT_DEBUG"
 T = TypeVar("T")
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
 
 
 class UserError(ValueError):
@@ -24,6 +33,23 @@ class UserError(ValueError):
 
 class MissingFileError(UserError, FileNotFoundError):
     """A file or folder the command needs does not exist."""
+
+
+class Stopped(BaseException):
+    """The command was stopped by a signal; it exits with 128 + ``signum``. A BaseException, like
+    KeyboardInterrupt, so that no ``except Exception`` on the way swallows it and cleanups still run."""
+
+    def __init__(self, signum: int, message: str = "") -> None:
+        self.signum = int(signum)
+        self.message = message or f"stopped by {signal_name(signum)}"
+        super().__init__(self.message)
+
+
+def signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
 
 
 def check_writable(folder: Path, named: str) -> None:
@@ -41,16 +67,98 @@ def debug() -> bool:
     return os.environ.get(DEBUG_ENV, "") not in ("", "0")
 
 
-def fail(command: str, message: str) -> NoReturn:
-    """Stop with ``aesplat COMMAND: message`` on stderr and exit status 1."""
-    raise SystemExit(f"aesplat {command}: {message}")
+def fail(command: str, message: str, status: int = 1) -> NoReturn:
+    """Stop with ``aesplat COMMAND: message`` on stderr and exit ``status``."""
+    if status == 1:
+        raise SystemExit(f"aesplat {command}: {message}")  # Python prints it on stderr and exits with 1
+    print(f"aesplat {command}: {message}", file=sys.stderr)
+    raise SystemExit(status)
+
+
+# What to do about an OSError, by errno; the others are reported with the system's own words.
+_OS_ERROR_HINTS = {
+    errno.ENOSPC: "the disk is full: free some space and run the command again",
+    errno.EDQUOT: "your disk quota is used up: free some space and run the command again",
+    errno.EROFS: "the file system is read-only: give a folder on a writable one",
+    errno.EACCES: "no permission: give a path you may read and write, or change its permissions",
+    errno.EPERM: "not permitted: give a path you may read and write, or change its permissions",
+    errno.ESTALE: "the network file system lost the file (stale handle): run the command again",
+    errno.EIO: "the disk or network file system reported an input/output error",
+}
+
+
+def os_error_line(err: OSError) -> str:
+    """One line for an OSError: the file, the system's words and, where known, what to do."""
+    where = f"{err.filename}: " if err.filename else ""
+    if err.filename2:
+        where = f"{err.filename} -> {err.filename2}: "
+    words = err.strerror or str(err)
+    hint = _OS_ERROR_HINTS.get(err.errno or -1)
+    return f"{where}{words}" + (f" ({hint})" if hint else "")
+
+
+def in_this_process_only(handler: Callable[[int, object], None]) -> Callable[[int, object], None]:
+    """``handler`` for this process; in a process forked from it later (a data-loader worker, which inherits
+    Python's signal handlers) the signal is ignored: the main process stops its workers itself, and a worker
+    that died on a signal sent to the whole process group (Ctrl-C, SLURM) would break the batch the main
+    process is still waiting for."""
+    pid = os.getpid()
+
+    def only_here(signum: int, frame: object) -> None:
+        if os.getpid() == pid:
+            handler(signum, frame)
+
+    return only_here
+
+
+def heeded_signals() -> list[int]:
+    """The stop signals this process does not ignore: ``nohup`` ignores SIGHUP, and a shell starts a
+    background job with SIGINT ignored; those stay ignored."""
+    return [s for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN]
+
+
+def _raise_stopped(signum: int, frame: object) -> None:
+    if signum == signal.SIGINT:  # as Python does: code that ends on Ctrl-C (a server) catches it
+        raise KeyboardInterrupt
+    raise Stopped(signum)
+
+
+@contextmanager
+def stopping_on_signals() -> Iterator[None]:
+    """SIGTERM and SIGHUP raise :class:`Stopped`, SIGINT KeyboardInterrupt, in this process's main thread
+    while the block runs (so ``finally`` blocks and staging cleanups run, where SIGTERM's default would kill
+    the process on the spot); processes forked meanwhile ignore them (:func:`in_this_process_only`)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    handler = in_this_process_only(_raise_stopped)
+    previous = {s: signal.signal(s, handler) for s in heeded_signals()}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
 
 
 def run_reporting_user_errors(command: str, fn: Callable[[], T]) -> T:
-    """Call ``fn``; a :class:`UserError` becomes one line on stderr and exit status 1 (unless debugging)."""
+    """Call ``fn``; a :class:`UserError` or ``OSError`` becomes one line on stderr and exit status 1 (unless
+    debugging); a stop by a signal exits with 128 + its number (one line saying so)."""
     try:
-        return fn()
+        with stopping_on_signals():
+            return fn()
     except UserError as err:
         if debug():
             raise
         fail(command, str(err))
+    except OSError as err:
+        if debug():
+            raise
+        fail(command, os_error_line(err))
+    except Stopped as err:
+        fail(command, err.message, 128 + err.signum)
+    except KeyboardInterrupt:
+        fail(command, "stopped by SIGINT", 128 + signal.SIGINT)
+    except SystemExit as err:  # Lightning ends a KeyboardInterrupt with sys.exit(1)
+        if err.code == 1 and isinstance(err.__context__, KeyboardInterrupt):
+            fail(command, "stopped by SIGINT", 128 + signal.SIGINT)
+        raise

@@ -42,6 +42,8 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 from torch import Tensor
 from tqdm import tqdm
 
+from .checkpoint import LoadedCheckpoint, load_checkpoint
+from .commands import HelpFormatter, OneLineParser, resolve_device
 from .errors import MissingFileError, UserError, check_writable, run_reporting_user_errors
 from .export import (
     EXPORTS,
@@ -51,6 +53,7 @@ from .export import (
     parse_formats,
     write_ply,
 )
+from .files import Inputs, check_deletable
 from .geometry import (
     denormalize_intrinsics,
     focal_to_fov,
@@ -59,7 +62,7 @@ from .geometry import (
     matrix_to_quat,
     quat_to_matrix,
 )
-from .render import render
+from .render import BACKENDS, render
 from .threads import ENV_OVERRIDE, apply_thread_policy
 from .types import Gaussians
 
@@ -327,92 +330,6 @@ def camera_record(extrinsics: Tensor, intrinsics: Tensor, height: int, width: in
 
 
 # ---------------------------------------------------------------------------------------------------
-# Checkpoints
-
-
-@dataclass(frozen=True)
-class LoadedCheckpoint:
-    """A trained model restored from an ``aesplat fit`` checkpoint, with what the run was configured with.
-
-    net      the checkpoint's ``net`` hyper-parameters (arguments of ``build_model``)
-    render   the checkpoint's ``render`` hyper-parameters (backend, background, options)
-    data     the ``data`` section of the run's config.yaml (None when the file is not beside the checkpoint)
-    cameras  ``model.cameras`` of the run: ``predicted``, or ``dataset`` (trained with the data set's cameras;
-             the camera head is untrained, so the model needs every view's camera: ``forward_batch``)
-    """
-
-    model: torch.nn.Module
-    net: dict
-    render: dict
-    data: dict | None
-    path: Path
-    cameras: str = "predicted"
-
-    @property
-    def sh_degree(self) -> int:
-        return int(self.model.cfg.sh_degree)
-
-    @property
-    def patch_size(self) -> int:
-        """Pixels per patch side of the model's encoder: image sides must be multiples of it."""
-        return int(self.model.cfg.encoder.patch_size)
-
-    @property
-    def image_size(self) -> int:
-        """The square side the model was trained at (the run's ``data.image_size``; 224 if unknown)."""
-        return int((self.data or {}).get("image_size", 224))
-
-    @property
-    def background(self) -> Tensor:
-        """Render background colour [3] the run evaluated with."""
-        return torch.tensor(self.render.get("background", (0.0, 0.0, 0.0)), dtype=torch.float32)
-
-
-def run_config(ckpt: Path) -> dict | None:
-    """The run's config.yaml: ``aesplat fit`` writes it in the run directory, the checkpoint's grandparent."""
-    from omegaconf import OmegaConf
-
-    for folder in (ckpt.parent, ckpt.parent.parent):
-        if (folder / "config.yaml").is_file():
-            return OmegaConf.to_container(OmegaConf.load(folder / "config.yaml"), resolve=True)
-    return None
-
-
-def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> LoadedCheckpoint:
-    """Restore the model of an ``aesplat fit`` checkpoint in eval mode on ``device`` (no Lightning, no LPIPS).
-
-    The model is rebuilt from the checkpoint's ``net`` hyper-parameters without its pretrained-weights file
-    (the trained weights come from the checkpoint), then the ``model.*`` entries of the state dict are loaded
-    strictly.
-    """
-    from .model import NetConfig, checkpoint_cameras
-    from .model.weights import KIND_NAMES, checkpoint_kind, read_torch_file
-
-    path = Path(path)
-    if not path.is_file():
-        raise MissingFileError(
-            f"checkpoint {str(path)!r} not found (aesplat fit writes RUN_DIR/checkpoints/last.ckpt)"
-        )
-    ckpt = read_torch_file(path, "checkpoint")
-    hparams = ckpt.get("hyper_parameters") or {} if isinstance(ckpt, dict) else {}
-    if "net" not in hparams or "state_dict" not in ckpt:
-        raise UserError(
-            f"{str(path)!r} is {KIND_NAMES[checkpoint_kind(ckpt)]}, not an aesplat checkpoint (no 'net' "
-            "hyper-parameters); give RUN/checkpoints/last.ckpt of `aesplat fit` or an exported weights file"
-        )
-    net = dict(hparams["net"])
-    # The trained weights come from the checkpoint, not from the run's pretrained-weights file; a few
-    # inference passes do not pay back a training run's block compilation.
-    model = NetConfig(**{**net, "weights": None, "compile": "none"}).build()
-    state = {k[len("model.") :]: v for k, v in ckpt["state_dict"].items() if k.startswith("model.")}
-    model.load_state_dict(state, strict=True)
-    model.to(device).eval()
-    data = (run_config(path) or {}).get("data")
-    render = dict(hparams.get("render") or {})
-    return LoadedCheckpoint(model, net, render, data, path, cameras=checkpoint_cameras(ckpt))
-
-
-# ---------------------------------------------------------------------------------------------------
 # Prediction
 
 
@@ -442,6 +359,51 @@ def predict_scene(model: torch.nn.Module, images: Tensor) -> Prediction:
         intrinsics=out.intrinsics[0].float(),
         depth=out.depth[0].float(),
     )
+
+
+@dataclass(frozen=True)
+class PhotoPrediction:
+    """A checkpoint's prediction from photos, as ``aesplat predict`` and ``aesplat view --ckpt`` make it.
+
+    images  [V, 3, H, W] what the model saw (on the device); shape (H, W); inputs: per photo, what was used
+    """
+
+    loaded: LoadedCheckpoint
+    inputs: list[InputImage]
+    images: Tensor
+    pred: Prediction
+    shape: tuple[int, int]
+
+
+def predict_photos(
+    ckpt: str | Path, photos: list[str], *, size: int | None, crop: str, device: torch.device
+) -> PhotoPrediction:
+    """Load ``ckpt`` and predict from ``photos`` (the first is the reference frame; every view takes the first
+    photo's shape, ``size`` its shorter side, default the trained size; ``crop`` as ``--crop``). A checkpoint
+    without a camera head, a count its appearance head cannot take or a size its patch does not divide is one
+    line (UserError) before any photo is read."""
+    loaded = load_checkpoint(ckpt, device)
+    if loaded.cameras != "predicted":
+        raise UserError(
+            f"{ckpt} was trained with model.cameras={loaded.cameras}: it renders with "
+            "the data set's cameras, its camera head never trained, and it predicts no cameras for "
+            "images. Evaluate it with `aesplat test` or `aesplat bench`, or predict with a checkpoint trained "
+            "with model.cameras=predicted."
+        )
+    loaded.model.check_context_views(len(photos))
+    size, patch = size or loaded.image_size, loaded.patch_size
+    if size % patch != 0:
+        raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
+    background = tuple(loaded.background.tolist())
+    # Every view shares one model image shape: the first photo's (each other photo centre-cropped to it).
+    shape = model_image_shape(*photo_size(photos[0]), size, patch, crop)
+    inputs = [load_image(p, size, background, patch=patch, shape=shape) for p in photos]
+    images = torch.stack([i.image for i in inputs]).to(device)
+    try:
+        pred = predict_scene(loaded.model, images)
+    except ValueError as err:  # e.g. more images than the context views the checkpoint was built for
+        raise UserError(str(err)) from None
+    return PhotoPrediction(loaded, inputs, images, pred, shape)
 
 
 @torch.no_grad()
@@ -548,17 +510,8 @@ def _render_record(render_options: dict | None) -> dict:
 # Command line
 
 
-class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows defaults, except None / False ones (their help says what happens instead)."""
-
-    def _get_help_string(self, action: argparse.Action) -> str | None:
-        if action.default is None or action.default is False:
-            return action.help
-        return super()._get_help_string(action)
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="aesplat predict",
         description="Predict cameras and 3D Gaussians from unposed images with a trained checkpoint; write a "
         "3DGS PLY, the cameras, re-renders of the inputs, depth maps and a short novel-view path.",
@@ -606,25 +559,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> cuda when available, else cpu; anything else as given (checked)."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"--device {name} asked for CUDA, which is not available here")
-    return device
-
-
-def check_output_dir(out: Path, overwrite: bool) -> None:
+def check_output_dir(out: Path, overwrite: bool, inputs: Inputs = ()) -> None:
     """Refuse, before anything is loaded, an output folder that cannot be written whole: a file, a folder that
-    holds something (unless ``overwrite``), or a place without write permission."""
+    holds something (unless ``overwrite``; and never one that holds the current folder, the home folder or one
+    of the command's ``inputs``), or a place without write permission."""
     if out.exists() and not out.is_dir():
         raise UserError(f"--out {out} is a file, not a folder; give a folder path")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         raise UserError(
             f"--out {out} is not empty; give a new folder, or --overwrite to replace it (as a whole)"
         )
+    if out.is_dir():  # it is replaced as a whole, even empty
+        check_deletable(out, "--overwrite" if overwrite else "--out", inputs)
     check_writable(out.resolve().parent, f"--out {out}")  # the folder is renamed into place beside it
 
 
@@ -657,43 +603,37 @@ def main(argv: list[str] | None = None) -> int:
     return run_reporting_user_errors("predict", lambda: _predict(args))
 
 
-def _predict(args: argparse.Namespace) -> int:
-    apply_thread_policy(num_workers=0, override=args.threads)
+def check_options(args: argparse.Namespace) -> None:
+    """Every option's value, checked before anything is loaded or written (one line each)."""
     if len(args.images) < 2:
         raise UserError("give at least two images of the same scene")
     if args.novel_frames < 2:
         raise UserError("--novel-frames must be at least 2")
+    if args.size is not None and args.size < 1:
+        raise UserError(f"--size must be a positive number of pixels, got {args.size}")
+    if args.ply_sh_degree is not None and args.ply_sh_degree < 0:
+        raise UserError(f"--ply-sh-degree must be 0 or more, got {args.ply_sh_degree}")
+    if not 0.0 <= args.min_opacity < 1.0:
+        raise UserError(f"--min-opacity must be in [0, 1), got {args.min_opacity}")
+    if args.backend != "auto" and args.backend not in BACKENDS:
+        raise UserError(f"--backend {args.backend} is not a renderer: give auto, {', '.join(BACKENDS)}")
+
+
+def _predict(args: argparse.Namespace) -> int:
+    apply_thread_policy(num_workers=0, override=args.threads)
+    check_options(args)
     out_dir = Path(args.out)
-    check_output_dir(out_dir, args.overwrite)
+    inputs = [("--ckpt", args.ckpt), *(("the input image", image) for image in args.images)]
+    check_output_dir(out_dir, args.overwrite, inputs)
     exports = parse_formats(args.export) if args.export is not None else []
     device = resolve_device(args.device)
-    loaded = load_checkpoint(args.ckpt, device)
-    if loaded.cameras != "predicted":
-        raise UserError(
-            f"{args.ckpt} was trained with model.cameras={loaded.cameras}: it renders with "
-            "the data set's cameras, its camera head never trained, and predict has no cameras for the input "
-            "images. Evaluate it with `aesplat test` or `aesplat bench`, or predict with a checkpoint trained "
-            "with model.cameras=predicted."
-        )
-    loaded.model.check_context_views(len(args.images))
-    size, patch = args.size or loaded.image_size, loaded.patch_size
-    if size % patch != 0:
-        raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
+    photos = predict_photos(args.ckpt, args.images, size=args.size, crop=args.crop, device=device)
+    loaded, inputs, images, pred, shape = photos.loaded, photos.inputs, photos.images, photos.pred, photos.shape
     model_degree = loaded.sh_degree
     if args.ply_sh_degree is not None and not 0 <= args.ply_sh_degree <= model_degree:
         raise UserError(f"--ply-sh-degree must be in 0..{model_degree} for this checkpoint")
-    background = tuple(loaded.background.tolist())
-    # Every view shares one model image shape: the first photo's (each other photo centre-cropped to it).
-    shape = model_image_shape(*photo_size(args.images[0]), size, patch, args.crop)
-    inputs = [load_image(p, size, background, patch=patch, shape=shape) for p in args.images]
-    images = torch.stack([i.image for i in inputs]).to(device)
     names = [Path(p).stem for p in args.images]
-    try:
-        pred = predict_scene(loaded.model, images)
-    except ValueError as err:  # e.g. more images than the context views the checkpoint was built for
-        raise UserError(str(err)) from None
-    options = {**loaded.render.get("options", {}), "backend": args.backend,
-               "background": loaded.background.to(device)}  # fmt: skip
+    options = {**loaded.render_options(device), "backend": args.backend}
     with staged_output(out_dir, args.overwrite) as staging:
         write_outputs(
             staging, names, images, pred, novel_frames=args.novel_frames, ply_sh_degree=args.ply_sh_degree,

@@ -88,7 +88,7 @@ def test_aesplat_fit_without_a_validation_split_is_refused_before_anything_is_wr
     from aesplat import cli
 
     generate_dataset(tmp_path / "src", scenes=2, test_scenes=1, val_scenes=0, **TINY)
-    convert_dataset(tmp_path / "src", tmp_path / "out", size=16, progress=False)
+    convert_dataset(tmp_path / "src", tmp_path / "out", size=28, progress=False)
     run = tmp_path / "run"
     argv = [
         "fit",
@@ -97,7 +97,7 @@ def test_aesplat_fit_without_a_validation_split_is_refused_before_anything_is_wr
         "--data.root",
         str(tmp_path / "out"),
         "--data.image_size",
-        "16",
+        "28",
         "--data.validate_on_test",
         "false",
         "--trainer.default_root_dir",

@@ -36,3 +36,25 @@ class RecordTrainingScenes(Callback):
             "slurm_restart_count": os.environ.get("SLURM_RESTART_COUNT", "0"),
         }  # fmt: skip
         path.write_text(json.dumps(record))
+
+
+class HoldUntilRequeueSignal(Callback):
+    """Before training step ``at`` (global step), wait until the SLURM requeue signal is pending (``aesplat
+    fit`` holds it blocked), at most ``timeout`` seconds; in the first run of the job only (a requeued job
+    trains on).
+
+    It keeps a job that is to be preempted running until the test has signalled it, whatever the machine's
+    speed, so the requeue cannot lose a race with the end of the job; it changes nothing in the training."""
+
+    def __init__(self, at: int, timeout: float = 300.0) -> None:
+        self.at, self.timeout = at, timeout
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx: int) -> None:
+        import signal
+        import time
+
+        if trainer.global_step != self.at or os.environ.get("SLURM_RESTART_COUNT", "0") != "0":
+            return
+        deadline = time.monotonic() + self.timeout
+        while signal.SIGUSR1 not in signal.sigpending() and time.monotonic() < deadline:
+            time.sleep(0.05)

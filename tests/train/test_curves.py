@@ -80,7 +80,7 @@ def test_warm_start_run_pretrains_once_on_other_scenes_then_starts_from_that_che
     hparams = torch.load(out / "warm-start" / "checkpoints" / "last.ckpt", weights_only=True)[
         "hyper_parameters"
     ]
-    assert hparams["net"]["options"] == {"camera_correlation": True} and hparams["optim"]["lr"] == 5e-5
+    assert hparams["net"]["options"]["camera_correlation"] is True and hparams["optim"]["lr"] == 5e-5
     stamp = last.stat().st_mtime_ns
     assert driver.main(argv) == 0  # finished: neither the warm start nor the curves train again
     assert last.stat().st_mtime_ns == stamp

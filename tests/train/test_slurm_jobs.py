@@ -23,6 +23,7 @@ REPO = Path(__file__).resolve().parents[2]
 SLURM = REPO / "slurm"
 CLUSTER_CONF = Path(os.environ.get("AESPLAT_SLURM_DIR", "/tmp/aesplat-slurm")) / "slurm.conf"
 STEPS = 6  # per training job; last.ckpt every 2 steps
+PREEMPT_AT = 2  # the preempted job holds before this step (after last.ckpt of step 2) until it is signalled
 CPU_JOB = ["--gpus-per-node=0", "--ntasks-per-node=2", "--cpus-per-task=1"]
 FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "BOOT_FAIL"}
 
@@ -98,11 +99,19 @@ def wait_for_end(env: dict, job_id: str, log: Path) -> dict[str, str]:
     return info
 
 
-def fit_args(shards: Path, run_dir: Path, record: Path, tmp_path: Path) -> list[str]:
+def fit_args(shards: Path, run_dir: Path, record: Path, tmp_path: Path, hold_at: int | None = None) -> list:
+    """``aesplat fit`` arguments of a training job; ``hold_at``: the job waits before that step until it has
+    the requeue signal (tests.train.helpers.HoldUntilRequeueSignal), so it is still running when signalled."""
     overlay = tmp_path / "record.yaml"
+    hold = ""
+    if hold_at is not None:
+        hold = (
+            "    - class_path: tests.train.helpers.HoldUntilRequeueSignal\n"
+            f"      init_args:\n        at: {hold_at}\n"
+        )
     overlay.write_text(
         "trainer:\n  callbacks:\n    - class_path: tests.train.helpers.RecordTrainingScenes\n"
-        f"      init_args:\n        out_dir: {record}\n"
+        f"      init_args:\n        out_dir: {record}\n{hold}"
     )
     return ["-c", "conf/smoke.yaml", "-c", str(overlay), "--data.root", str(shards),
             "--trainer.default_root_dir", str(run_dir), "--trainer.max_steps", str(STEPS),
@@ -137,11 +146,14 @@ def uninterrupted(job_env, smoke_shards, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def preempted(job_env, smoke_shards, uninterrupted, tmp_path_factory):
-    """The same job, sent SIGUSR1 (as SLURM does before the time limit) once it has saved step 2."""
+    """The same job, sent SIGUSR1 (as SLURM does before the time limit) once it has saved step 2. It holds
+    before step 3 until the signal is there, so it is always preempted while it runs: the requeue checkpoint
+    is the state after step 3."""
     tmp = tmp_path_factory.mktemp("slurm_preempted")
     run_dir, record, log = tmp / "run", tmp / "record", tmp / "job.out"
     started = time.monotonic()
-    job_id = sbatch(job_env, "train.sbatch", CPU_JOB, fit_args(smoke_shards, run_dir, record, tmp), log)
+    args = fit_args(smoke_shards, run_dir, record, tmp, hold_at=PREEMPT_AT)
+    job_id = sbatch(job_env, "train.sbatch", CPU_JOB, args, log)
     last = run_dir / "checkpoints" / "last.ckpt"
     wait_until(lambda: last.exists() or job_info(job_env, job_id)["JobState"] in FINAL_STATES, "step 2")
     assert job_info(job_env, job_id)["JobState"] == "RUNNING", log.read_text()
@@ -179,7 +191,7 @@ def test_preempted_job_is_requeued_and_ends_as_if_uninterrupted(uninterrupted, p
     hpc = sorted(run_dir.glob("hpc_ckpt_*.ckpt"))
     assert [p.name for p in hpc] == ["hpc_ckpt_1.ckpt"], info["log"][-6000:]
     stopped_at = weights(hpc[0])["global_step"]
-    assert 2 <= stopped_at < STEPS
+    assert stopped_at == PREEMPT_AT + 1  # the step under way when the signal came
     assert f"resuming from {hpc[0]}" in info["log"]
 
     # The requeued job started at the checkpoint's step and saw exactly the batches the uninterrupted one saw

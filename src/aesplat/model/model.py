@@ -391,6 +391,33 @@ def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4
 
 
 @dataclass
+class NetOptions:
+    """The ``model.net.options`` section: the other :func:`build_model` keywords, each typed. None (the default)
+    keeps the size preset's value; only the values given reach ``build_model``."""
+
+    camera_correlation: bool | None = None  # the camera head also sees a view-0 cost volume
+    num_context_views: int | None = None  # the count a concat appearance head is built for (pool takes any)
+    patch_size: int | None = None  # encoder patch side; 14 is DINOv2's and the only one pretrained weights fit
+    encoder_registers: int | None = None  # encoder register tokens (DINOv2 "reg4" and VGGT: 4)
+    num_register_tokens: int | None = None  # geometry transformer register tokens (VGGT: 4)
+    rope: bool | None = None  # 2D rotary position embedding in the geometry transformer
+    qk_norm: bool | None = None  # normalised queries and keys in the geometry transformer
+    head_precision: str | None = None  # fp32 | bf16: the DPT trunks' convolutions under bf16 autocast
+    head_features: int | None = None  # DPT fusion width
+    head_channels: tuple[int, int, int, int] | None = None  # DPT reassemble widths, fine to coarse
+    gaussian_feature_dim: int | None = None  # Gaussian-head features passed to the view-dependent head
+    camera_hidden: int | None = None  # camera head MLP width
+    gvsre_dim: int | None = None  # GVSRE output width
+    appearance_hidden: int | None = None  # view-dependent head MLP width
+    scale_multiplier: float | None = None  # Gaussian scale = multiplier * softplus(.)
+    scale_max: float | None = None  # cap of the Gaussian scales (scene units)
+
+    def given(self) -> dict[str, Any]:
+        """The options set (not None), as :func:`build_model` keywords."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if getattr(self, f.name) is not None}
+
+
+@dataclass
 class NetConfig:
     """A run's network settings: the arguments of :func:`build_model` (the ``model.net`` config section)."""
 
@@ -402,7 +429,7 @@ class NetConfig:
     near: float = ModelConfig.near  # the depth head's range: depth = near·(far/near)^sigmoid(·)
     far: float = ModelConfig.far
     weights: str | None = None  # local DINOv2/timm, VGGT or aesplat training checkpoint file; never downloaded
-    options: dict[str, Any] = field(default_factory=dict)  # any other build_model keyword (rope, ...)
+    options: NetOptions = field(default_factory=NetOptions)  # the other build_model keywords (rope, ...)
     compile: str = "none"  # none | blocks: torch.compile each encoder / transformer block (first steps slower)
 
     def __post_init__(self) -> None:
@@ -414,11 +441,18 @@ class NetConfig:
             raise ValueError(
                 f"unknown model.net.view_aggregation {self.view_aggregation!r}; choose one of {choices}"
             )
+        if isinstance(self.options, dict):  # as checkpoints store it
+            known = sorted(f.name for f in fields(NetOptions))
+            if unknown := sorted(set(self.options) - set(known)):
+                raise ValueError(f"model.net.options: unknown key(s) {unknown}; known: {known}")
+            self.options = NetOptions(**self.options)
+        elif self.options is None:
+            self.options = NetOptions()
 
     def build(self) -> AESplatModel:
         model = build_model(size=self.size, appearance=self.appearance, sh_degree=self.sh_degree,
                             view_aggregation=self.view_aggregation, near=self.near, far=self.far,
-                            weights=self.weights, **self.options)  # fmt: skip
+                            weights=self.weights, **self.options.given())  # fmt: skip
         if self.compile == "blocks":
             model.compile_blocks()
         return model

@@ -95,11 +95,14 @@ def read_torch_file(path: str | Path, what: str) -> object:
         raise MissingFileError(f"{what} file {path} does not exist (or is not a file)")
     if path.stat().st_size == 0:
         raise UserError(f"{what} file {path} is empty")
-    zipped = zipfile.is_zipfile(path)
-    try:  # a zip (the format of torch.save) is memory-mapped: a multi-GB file is not read in full
+    try:
+        zipped = zipfile.is_zipfile(path)
+        # a zip (the format of torch.save) is memory-mapped: a multi-GB file is not read in full
         return torch.load(path, map_location="cpu", weights_only=True, mmap=zipped)
+    except OSError as err:  # the file itself cannot be read (permissions, a vanished network mount, ...)
+        raise UserError(f"{what} file {path} cannot be read: {err.strerror or err}") from None
     except Exception as err:  # noqa: BLE001 - torch fails on a damaged file with anything from KeyError on
-        if isinstance(err, pickle.UnpicklingError) and "global" in str(err):  # a class the safe loader refuses
+        if _refused_by_safe_loader(err):
             raise UserError(
                 f"{what} file {path} holds Python objects besides tensors; it is not loaded, since that could "
                 "run code from the file: give a checkpoint written by `aesplat fit`, scripts/export_weights.py "
@@ -108,6 +111,12 @@ def read_torch_file(path: str | Path, what: str) -> object:
         zip_like = zipped or _starts_like_zip(path)
         damage = "truncated or corrupt (a damaged zip archive)" if zip_like else "not a torch file"
         raise UserError(f"{what} file {path} is {damage}; copy it again or give another file") from None
+
+
+def _refused_by_safe_loader(err: Exception) -> bool:
+    """Whether torch's safe loader refused a class or function the file names (torch writes "Unsupported
+    global" or "unsupported GLOBAL"), as opposed to bytes it cannot read at all ("Unsupported operand")."""
+    return isinstance(err, pickle.UnpicklingError) and "global" in str(err).lower()
 
 
 def _starts_like_zip(path: Path) -> bool:

@@ -7,7 +7,7 @@ backends never import the interface that dispatches to them).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 
@@ -47,16 +47,24 @@ class RenderSettings:
 @dataclass
 class RasterizerConfig:
     """The rasterizer a model renders with (config section ``model.render``): which backend, the background
-    colour, and the ``RenderSettings`` fields that differ from their defaults (passed to ``render``)."""
+    colour, and the ``RenderSettings`` (passed to ``render``)."""
 
     backend: str = "auto"  # auto | torch | gsplat
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    options: dict[str, Any] = field(default_factory=dict)  # RenderSettings fields (tile_size, compile, ...)
+    options: RenderSettings = field(default_factory=RenderSettings)  # tile_size, compile, ... (typed)
 
     def __post_init__(self) -> None:
-        known = {f.name for f in fields(RenderSettings)}
-        if unknown := sorted(set(self.options) - known):
-            raise ValueError(f"model.render.options: unknown key(s) {unknown}; known: {sorted(known)}")
+        if isinstance(self.options, dict):  # as checkpoints store it: the fields that differ from the defaults
+            known = {f.name for f in fields(RenderSettings)}
+            if unknown := sorted(set(self.options) - known):
+                raise ValueError(f"model.render.options: unknown key(s) {unknown}; known: {sorted(known)}")
+            self.options = RenderSettings(**self.options)
+        elif self.options is None:
+            self.options = RenderSettings()
+
+    def render_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of ``render`` for these settings (the background is the caller's: a tensor)."""
+        return {"backend": self.backend, **asdict(self.options)}
 
 
 @dataclass(frozen=True)

@@ -1,13 +1,18 @@
-"""Training callbacks: throughput (samples and steps per second, peak memory)."""
+"""Training callbacks: throughput (samples and steps per second, peak memory), the run folder's checkpoints
+(always a final save; a moved folder resumes into its own ``last.ckpt``) and the data record each checkpoint
+carries."""
 
 from __future__ import annotations
 
 import resource
 import sys
 import time
+from pathlib import Path
+from typing import Any
 
 import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
+from lightning.pytorch.callbacks import ModelCheckpoint
 
 
 class Throughput(Callback):
@@ -53,3 +58,74 @@ def peak_memory_gib(device: torch.device) -> float:
         return torch.cuda.max_memory_allocated(device) / 2**30
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
     return rss / (2**30 if sys.platform == "darwin" else 2**20)
+
+
+class RunCheckpoint(ModelCheckpoint):
+    """``ModelCheckpoint`` for a run folder (``checkpoint``: best by ``val/psnr``; ``last_checkpoint``:
+    ``last.ckpt`` every N steps), with what a run needs besides:
+
+    - the final step is always saved (``save_last``): when ``trainer.max_steps`` is reached, when the run is
+      asked to stop (a signal, the skipped-step guard) and at the end of a fit that ended otherwise, so
+      ``last.ckpt`` always holds where training stopped, whatever the save interval;
+    - a run folder that was moved or copied resumes into its own ``last.ckpt`` (Lightning compares the folder
+      path stored in the checkpoint with the new one and, when they differ, forgets its files and saves
+      ``last-v1.ckpt``): the stored paths are moved to the new folder, and file names never get a version
+      suffix (``enable_version_counter`` defaults to False: a run folder holds one run).
+    """
+
+    def __init__(self, *args: Any, enable_version_counter: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, enable_version_counter=enable_version_counter, **kwargs)
+
+    def on_train_batch_end(self, trainer: Trainer, pl_module: LightningModule, outputs, batch, batch_idx: int):
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+        final = trainer.should_stop or (trainer.max_steps > 0 and trainer.global_step >= trainer.max_steps)
+        if final:
+            self._save_final(trainer)
+
+    def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        self._save_final(trainer)
+
+    def _save_final(self, trainer: Trainer) -> None:
+        if (
+            not self.save_last
+            or trainer.global_step == 0
+            or self._last_global_step_saved == trainer.global_step
+        ):
+            return
+        if trainer.sanity_checking or bool(trainer.fast_dev_run):
+            return
+        self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        saved = state_dict.get("dirpath")
+        if saved and self.dirpath and Path(saved) != Path(self.dirpath):
+            state_dict = _moved(state_dict, str(saved), str(self.dirpath))
+        super().load_state_dict(state_dict)
+
+
+def _moved(state: dict[str, Any], old: str, new: str) -> dict[str, Any]:
+    """A ModelCheckpoint state with every path under folder ``old`` moved under ``new``."""
+
+    def move(path: Any) -> Any:
+        if not isinstance(path, str) or not path:
+            return path
+        p = Path(path)
+        return str(Path(new) / p.relative_to(old)) if p.is_relative_to(old) else path
+
+    out = {key: move(value) for key, value in state.items()}
+    out["dirpath"] = new
+    if isinstance(state.get("best_k_models"), dict):
+        out["best_k_models"] = {move(k): v for k, v in state["best_k_models"].items()}
+    return out
+
+
+class DataRecord(Callback):
+    """Store the run's ``data.image_size`` in every checkpoint (key ``aesplat.checkpoint.DATA_RECORD``), so
+    a checkpoint copied out of its run folder still says what input it expects (``aesplat predict``)."""
+
+    def on_save_checkpoint(self, trainer: Trainer, pl_module: LightningModule, checkpoint: dict[str, Any]):
+        from aesplat.checkpoint import DATA_RECORD
+
+        image_size = getattr(trainer.datamodule, "image_size", None)
+        if isinstance(image_size, int):
+            checkpoint[DATA_RECORD] = {"image_size": image_size}

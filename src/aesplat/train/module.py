@@ -110,7 +110,7 @@ class AESplatModule(LightningModule):
         background = torch.tensor(self.render_cfg.background, device=self.device)
         rendered = render(
             out.gaussians, out.extrinsics[:, first:], out.intrinsics[:, first:], height, width,
-            background=background, backend=self.render_cfg.backend, **self.render_cfg.options,
+            background=background, **self.render_cfg.render_kwargs(),
         )  # fmt: skip
         return out, rendered
 

@@ -2,18 +2,27 @@
 
 The wandb run id is stored in the folder, so a resumed or requeued run continues the same wandb run. Each
 ``aesplat test`` / ``validate`` writes into a folder of its own inside it (``test-<UTC time>/``, the newest
-behind the link ``test-latest``), so an evaluation never changes the training run's files.
+behind the link ``test-latest``), so an evaluation never changes the training run's files. One ``aesplat fit``
+at a time trains in a run folder (:func:`lock_run`), and a fit that stops before its first checkpoint takes
+back its run markers (:class:`FitWrites`), so the corrected command is not refused as "already holds a run".
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
 import socket
+import sys
 import uuid
+from contextlib import suppress
 from datetime import datetime, timezone
 from pathlib import Path
 
+from aesplat.errors import UserError
+from aesplat.files import remove_partials
+
 WANDB_ID_FILE = "wandb_run_id"
+LOCK_FILE = ".lock"  # held by the `aesplat fit` training in the folder (pid, host and start time inside)
 
 
 def wandb_run_id(run_dir: str | Path) -> str:
@@ -51,18 +60,94 @@ def wandb_mode(requested: str = "auto", host: str = "api.wandb.ai", timeout: flo
         return "offline"
 
 
-def latest_checkpoint(run_dir: str | Path) -> Path | None:
-    """Newest resumable checkpoint of a run: ``checkpoints/last*.ckpt`` or a SLURM ``hpc_ckpt_*.ckpt``."""
+def run_checkpoint_files(run_dir: str | Path) -> list[Path]:
+    """The checkpoint files of a run: ``checkpoints/*.ckpt`` and SLURM's ``hpc_ckpt_*.ckpt``."""
     run_dir = Path(run_dir)
-    candidates = [*run_dir.glob("checkpoints/last*.ckpt"), *run_dir.glob("hpc_ckpt_*.ckpt")]
-    return max(candidates, key=lambda p: p.stat().st_mtime) if candidates else None
+    return sorted(run_dir.glob("checkpoints/*.ckpt")) + sorted(run_dir.glob("hpc_ckpt_*.ckpt"))
 
 
 def run_artifacts(run_dir: str | Path) -> list[Path]:
     """What marks ``run_dir`` as holding a run (finished or interrupted): its config, wandb id, checkpoints."""
     run_dir = Path(run_dir)
     found = [run_dir / name for name in ("config.yaml", WANDB_ID_FILE) if (run_dir / name).exists()]
-    return found + sorted(run_dir.glob("checkpoints/*.ckpt")) + sorted(run_dir.glob("hpc_ckpt_*.ckpt"))
+    return found + run_checkpoint_files(run_dir)
+
+
+_held_locks: dict[Path, int] = {}  # run folder -> open descriptor of its lock file, for the process's life
+
+
+def lock_run(run_dir: str | Path) -> None:
+    """Make this process the one ``aesplat fit`` training in ``run_dir`` until it exits (a POSIX lock on
+    ``run_dir/.lock``, which network file systems honour across machines); UserError naming the holder if
+    another process has it. Creates ``run_dir``."""
+    run_dir = Path(run_dir).resolve()
+    if run_dir in _held_locks:
+        return
+    run_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        raise UserError(
+            f"{run_dir} is in use: {holder} is training there; wait for it to end, or give another "
+            "--trainer.default_root_dir"
+        ) from None
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"aesplat fit (pid {os.getpid()} on {socket.gethostname()}, since {stamp})\n".encode(), 0)
+    _held_locks[run_dir] = fd
+
+
+def unlock_run(run_dir: str | Path) -> None:
+    """Let go of ``run_dir``'s lock (it also goes when the process ends)."""
+    fd = _held_locks.pop(Path(run_dir).resolve(), None)
+    if fd is not None:
+        os.close(fd)
+
+
+class FitWrites:
+    """What one ``aesplat fit`` adds to its run folder that would mark the folder as holding a run, so that a
+    fit that fails or stops before its first checkpoint can take it back and the corrected command is not
+    refused: whether the folder existed is noted when this is made, its entries when the fit is about to
+    write (:meth:`snapshot`). What a failure leaves to read (wandb logs, a non-finite step's report) stays."""
+
+    def __init__(self, run_dir: str | Path) -> None:
+        self.run_dir = Path(run_dir)
+        self.existed = self.run_dir.exists()
+        self.before: set[str] = set()
+        self.snapshot()
+
+    def snapshot(self) -> None:
+        """Note what the run folder holds now: :meth:`discard_if_untrained` leaves it."""
+        self.before = {p.name for p in self.run_dir.iterdir()} if self.run_dir.is_dir() else set()
+
+    def discard_if_untrained(self) -> list[str]:
+        """When the run holds no checkpoint, remove the run markers this fit wrote (``config.yaml``, the wandb
+        id, an empty ``checkpoints/``), and the folder itself if this fit made it and nothing else is in it;
+        returns the names removed."""
+        checkpoints = self.run_dir / "checkpoints"
+        remove_partials(checkpoints)
+        if not self.run_dir.is_dir() or run_checkpoint_files(self.run_dir):
+            return []
+        removed = []
+        for name in ("config.yaml", WANDB_ID_FILE):
+            if name not in self.before and (self.run_dir / name).is_file():
+                (self.run_dir / name).unlink()
+                removed.append(name)
+        if "checkpoints" not in self.before and checkpoints.is_dir() and not any(checkpoints.iterdir()):
+            checkpoints.rmdir()
+        if not self.existed and {p.name for p in self.run_dir.iterdir()} <= {LOCK_FILE}:
+            unlock_run(self.run_dir)
+            with suppress(FileNotFoundError):
+                (self.run_dir / LOCK_FILE).unlink()
+            with suppress(OSError):
+                self.run_dir.rmdir()
+        if removed:
+            print(f"aesplat fit: nothing was trained: removed {', '.join(removed)} from {self.run_dir}, so the "
+                  "corrected command can start there", file=sys.stderr)  # fmt: skip
+        return removed
 
 
 def evaluation_dir(base: str | Path, command: str, now: datetime | None = None) -> Path:

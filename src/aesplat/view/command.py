@@ -54,7 +54,7 @@ def require_viewer_extra() -> None:
 
 def start_viewer(args: argparse.Namespace):
     """Load what ``args`` name and start the viewer on it (returns the running Viewer)."""
-    from ..predict import resolve_device
+    from ..commands import resolve_device
     from .app import Viewer, ViewerOptions
 
     require_viewer_extra()

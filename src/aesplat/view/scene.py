@@ -101,35 +101,14 @@ def scene_from_checkpoint(
     """Predict a scene from ``images`` with the checkpoint ``ckpt`` as ``aesplat predict`` does (the first
     photo's shape for every view, ``size`` its shorter side, ``crop`` as ``--crop``), in memory: nothing is
     written."""
-    from ..predict import (
-        interpolate_cameras,
-        load_checkpoint,
-        load_image,
-        model_image_shape,
-        photo_size,
-        predict_scene,
-        resolve_device,
-    )
+    from ..commands import resolve_device
+    from ..predict import interpolate_cameras, predict_photos
 
     if len(images) < 2:
         raise UserError("give at least two images of the same scene after --ckpt")
-    dev = resolve_device(device)
-    loaded = load_checkpoint(ckpt, dev)
-    if loaded.cameras != "predicted":
-        raise UserError(f"{ckpt} was trained with model.cameras={loaded.cameras}: it predicts no cameras for "
-                        "images; view it with a checkpoint trained with model.cameras=predicted")  # fmt: skip
-    loaded.model.check_context_views(len(images))
-    size, patch = size or loaded.image_size, loaded.patch_size
-    if size % patch != 0:
-        raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
+    photos = predict_photos(ckpt, images, size=size, crop=crop, device=resolve_device(device))
+    loaded, pixels, pred, shape = photos.loaded, photos.images, photos.pred, photos.shape
     background = loaded.background
-    shape = model_image_shape(*photo_size(images[0]), size, patch, crop)
-    inputs = [load_image(p, size, tuple(background.tolist()), patch=patch, shape=shape) for p in images]
-    pixels = torch.stack([i.image for i in inputs]).to(dev)
-    try:
-        pred = predict_scene(loaded.model, pixels)
-    except ValueError as err:
-        raise UserError(str(err)) from None
     ext, intr = pred.extrinsics.cpu(), pred.intrinsics.cpu()
     height, width = shape
     cameras = [

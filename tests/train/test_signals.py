@@ -1,4 +1,6 @@
-"""The requeue signal waits for the end of the step under way, then Lightning's SLURM handler takes it there.
+"""Signals during training act at a step boundary: the requeue signal waits for the end of the step under way,
+then Lightning's SLURM handler takes it there; a stop signal (SIGTERM, SIGINT) saves last.ckpt where training
+stopped and `aesplat fit` exits with 128 + the signal.
 
 One process, SLURM's environment variables set by hand and a fake `scontrol`: no cluster needed (the real
 thing, two ranks and a requeued job, is tests/train/test_slurm_jobs.py).
@@ -8,11 +10,14 @@ import os
 import signal
 import threading
 
+import lightning as L
 import pytest
 import torch
 from lightning.pytorch import Callback
 
-from aesplat.train.requeue import REQUEUE_SIGNAL, RequeueAtStepBoundary
+from aesplat.errors import Stopped
+from aesplat.train.callbacks import RunCheckpoint
+from aesplat.train.signals import REQUEUE_SIGNAL, SignalsAtStepBoundary
 
 from .test_module import make_data, make_module, make_trainer
 
@@ -57,11 +62,11 @@ def slurm_task(monkeypatch, tmp_path):
 def test_requeue_waits_for_the_end_of_the_step(smoke_shards, tmp_path, slurm_task):
     torch.manual_seed(0)
     sender = SignalDuringStep(at=1)
-    requeue = RequeueAtStepBoundary(wait_for_kill=0.5)  # no SLURM here to send SIGTERM: train on after it
+    requeue = SignalsAtStepBoundary(wait_for_kill=0.5)  # no SLURM here to send SIGTERM: train on after it
     trainer = make_trainer(4, tmp_path, callbacks=[sender, requeue])
     trainer.fit(make_module(), make_data(smoke_shards))
 
-    assert requeue.active and requeue.done
+    assert requeue.requeue_active and requeue.requeued
     assert slurm_task.read_text().split() == ["requeue", "77"]
     hpc = sorted(p.name for p in tmp_path.glob("hpc_ckpt_*.ckpt"))
     assert hpc == ["hpc_ckpt_1.ckpt"]
@@ -76,8 +81,51 @@ def test_requeue_waits_for_the_end_of_the_step(smoke_shards, tmp_path, slurm_tas
 
 def test_without_slurm_the_signal_is_not_held(smoke_shards, tmp_path, slurm_task, monkeypatch):
     monkeypatch.setenv("SLURM_JOB_NAME", "bash")  # an interactive allocation: Lightning does not requeue
-    requeue = RequeueAtStepBoundary()
+    requeue = SignalsAtStepBoundary()
     trainer = make_trainer(1, tmp_path, callbacks=[requeue])
     trainer.fit(make_module(), make_data(smoke_shards))
-    assert not requeue.active
+    assert not requeue.requeue_active
     assert REQUEUE_SIGNAL not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+
+
+class StopSignalDuringStep(Callback):
+    """Send ``signum`` to this process at the start of training batch ``at`` (mid-step); ``again``: send it
+    a second time at the end of that step."""
+
+    def __init__(self, at: int, signum: int = int(signal.SIGTERM), again: bool = False) -> None:
+        self.at, self.signum, self.again = at, signum, again
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if batch_idx == self.at:
+            signal.pthread_kill(threading.main_thread().ident, self.signum)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if batch_idx == self.at and self.again:
+            signal.pthread_kill(threading.main_thread().ident, self.signum)
+
+
+def stop_run(smoke_shards, tmp_path, sender: Callback) -> tuple[L.Trainer, SignalsAtStepBoundary]:
+    torch.manual_seed(0)
+    signals = SignalsAtStepBoundary()
+    last = RunCheckpoint(
+        dirpath=tmp_path / "checkpoints", save_last=True, save_top_k=0, every_n_train_steps=100
+    )
+    trainer = make_trainer(6, tmp_path, callbacks=[sender, signals, last])
+    trainer.fit(make_module(), make_data(smoke_shards))
+    return trainer, signals
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_signal_finishes_the_step_saves_it_and_ends_the_fit(smoke_shards, tmp_path, signum):
+    before = signal.getsignal(signum)
+    trainer, signals = stop_run(smoke_shards, tmp_path, StopSignalDuringStep(at=1, signum=signum))
+    assert (signals.stop_signal, signals.stopped_at, trainer.global_step) == (signum, 2, 2)
+    ckpt = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
+    assert ckpt["global_step"] == 2  # where it stopped, though the save interval is 99 steps
+    assert signal.getsignal(signum) == before  # the command's own handler is back
+
+
+def test_a_second_stop_signal_stops_at_once_without_saving(smoke_shards, tmp_path):
+    with pytest.raises(Stopped, match="stopped by a second SIGTERM, without saving"):
+        stop_run(smoke_shards, tmp_path, StopSignalDuringStep(at=1, again=True))
+    assert not (tmp_path / "checkpoints" / "last.ckpt").exists()

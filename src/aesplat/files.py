@@ -1,0 +1,126 @@
+"""Writing and deleting what the user owns, safely, whatever the file system.
+
+- :func:`atomic_write` writes a file whole or not at all: into a temporary file in the destination folder
+  (so the final rename never crosses file systems), flushed to the disk (fsync), then renamed over the old
+  file, which stays as it was until the new one is complete. A crash, ``kill -9`` or a full disk leaves the
+  old file and, at worst, a hidden ``.NAME.*.partial`` file beside it (:func:`remove_partials` clears those).
+- :func:`check_deletable` is the guard every ``--overwrite`` goes through before it deletes a folder: never
+  the file system root, the current folder, the home folder or a folder holding one of them, and never a
+  folder holding one of the command's own inputs.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import shutil
+from collections.abc import Callable, Iterable
+from contextlib import suppress
+from pathlib import Path
+from typing import BinaryIO
+
+from .errors import UserError
+
+PARTIAL_SUFFIX = ".partial"  # temporary files of atomic_write: .NAME.<random>.partial
+
+
+def fsync_dir(folder: str | Path) -> None:
+    """Flush a folder's entries (a rename into it) to the disk; a no-op where folders cannot be opened."""
+    with suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
+    """Write ``path`` whole or not at all: ``write(f)`` fills a temporary file in the same folder, which is
+    fsynced and renamed over ``path``. On any error (a full disk included) or interruption the temporary file
+    is removed and ``path`` keeps its previous content; the error is raised naming ``path``."""
+    path = Path(path)
+    folder = path.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / f".{path.name}.{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
+    # os.open with 0o666 honours the umask, as a plain open() of the final name would (mkstemp would not).
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            try:
+                write(f)
+            except RuntimeError as err:  # torch's zip writer wraps the OSError of a failed write
+                if isinstance(err.__context__, OSError):
+                    raise err.__context__ from None
+                raise
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as err:
+        with suppress(OSError):
+            tmp.unlink()
+        if isinstance(err, OSError) and err.filename is None:
+            raise OSError(err.errno, err.strerror, str(path)) from None
+        raise
+    fsync_dir(folder)
+    return path
+
+
+def remove_partials(folder: str | Path) -> list[Path]:
+    """Remove the temporary files interrupted :func:`atomic_write` calls left in ``folder``; returns them."""
+    found = sorted(Path(folder).glob(f".*{PARTIAL_SUFFIX}"))
+    for path in found:
+        with suppress(FileNotFoundError):
+            path.unlink()
+    return found
+
+
+def _forms(path: str | Path) -> set[Path]:
+    """A path as written (absolute, normalised) and as it resolves (links followed)."""
+    return {Path(os.path.abspath(path)), Path(path).resolve()}
+
+
+def _holds(folder: str | Path, path: str | Path) -> bool:
+    """Whether ``folder`` is or contains ``path``, either as written or with links followed."""
+    return any(p == f or f in p.parents for f in _forms(folder) for p in _forms(path))
+
+
+Inputs = Iterable[tuple[str, "str | Path | None"]]  # (how the command names it, path) of what it reads
+
+
+def check_deletable(folder: str | Path, flag: str, inputs: Inputs = ()) -> None:
+    """Refuse (UserError) to delete ``folder`` when it is or holds the file system root, the current folder,
+    the home folder, or one of ``inputs`` (the files and folders the command reads, each with the option
+    that names it): as the paths are written, and with symbolic links followed."""
+    target = Path(folder).resolve()
+    refusal = f"{flag} will not delete {target}: it holds"
+    if target == Path(target.anchor) or _holds(folder, Path.cwd()):
+        raise UserError(f"{refusal} the current folder; give a folder of its own")
+    if _holds(folder, Path.home()):
+        raise UserError(f"{refusal} your home folder; give a folder of its own")
+    for name, value in inputs:
+        if value is None or str(value) == "":
+            continue
+        if _holds(folder, value):
+            raise UserError(
+                f"{refusal} {name} {value}, an input of this command; move that input out of it, or give "
+                "another folder"
+            )
+
+
+def delete_folder(folder: str | Path, flag: str, inputs: Inputs = (), keep: tuple[str, ...] = ()) -> None:
+    """Delete ``folder`` (guarded by :func:`check_deletable`); entries named in ``keep`` stay (the folder
+    too, then)."""
+    check_deletable(folder, flag, inputs)
+    folder = Path(folder)
+    if not folder.exists():
+        return
+    if not keep:
+        shutil.rmtree(folder)
+        return
+    for entry in folder.iterdir():
+        if entry.name in keep:
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
