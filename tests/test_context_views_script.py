@@ -3,25 +3,18 @@ warm start without an appearance head (the runs themselves are `aesplat fit`, `a
 bench`, tested where they live); benchmarks/context_view_cost.py: its count of the paper network's work per
 count of context views, its table and its resumption."""
 
-import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 import yaml
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.script_loader import load_benchmark
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("context_views", BENCHMARKS / "context_views.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("context_views")
 
 
 def _settings(script, **changes):
