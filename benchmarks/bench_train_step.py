@@ -38,7 +38,8 @@ little overlap (the step times are those of a run that waits at every boundary).
 setting see the same batches: ``--losses FILE`` writes every step's loss and time (warm-up included) as CSV and
 ``--compare FILE`` prints how far this run's losses are from such a file, step by step and as means over
 windows of ``--window`` steps (bf16 and atomics make single steps differ a little; the windowed means show a
-drift).
+drift). ``--json FILE`` also writes the figures (seconds per step, samples/s, peak memory and, on the CPU, the
+process's resident memory before the fit, stages, settings) for a script to read.
 """
 
 from __future__ import annotations
@@ -46,7 +47,9 @@ from __future__ import annotations
 import argparse
 import csv
 import importlib.metadata
+import json
 import math
+import os
 import resource
 import statistics
 import sys
@@ -349,6 +352,7 @@ def main() -> None:
     p.add_argument("--losses", type=Path, default=None, help="write every step's loss and time here (CSV)")
     p.add_argument("--compare", type=Path, default=None, help="compare the losses with such a CSV")
     p.add_argument("--window", type=int, default=20, help="steps per window of --compare's means")
+    p.add_argument("--json", type=Path, default=None, help="also write the figures here (JSON)")
     args = p.parse_args()
     if args.compare is not None and not args.compare.is_file():
         raise SystemExit(f"--compare {args.compare}: no such file (write one first with --losses)")
@@ -371,6 +375,7 @@ def main() -> None:
         shards, gaps = synthetic_shards(Path(tmp), size, args.scenes)
         torch.manual_seed(args.seed)
         module, datamodule = build(cfg, args, shards, gaps)
+        start_rss = start_peak_window()  # the process before the fit: imports, the model, the data module
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         per_step, times, records = run(module, datamodule, device, args.steps, args.warmup, precision,
@@ -381,9 +386,11 @@ def main() -> None:
     batch = datamodule.batch_size
     step = statistics.median(times)
     if device.type == "cuda":
-        peak = f"{torch.cuda.max_memory_allocated(device) / 2**30:.2f} GiB (CUDA, allocated)"
+        peak_gib = torch.cuda.max_memory_allocated(device) / 2**30
+        peak = f"{peak_gib:.2f} GiB (CUDA, allocated)"
     else:
-        peak = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB (process RSS)"
+        peak_gib = fit_peak_gib()
+        peak = f"{peak_gib:.2f} GiB (process RSS during the fit; {start_rss:.2f} GiB before it)"
     net = module.model.cfg
     settings = "".join(f" --set {o}" for o in args.overrides)
     print(f"## {' + '.join(args.config)}{settings}: {precision}, {device}, {threads} torch threads\n")
@@ -404,11 +411,56 @@ def main() -> None:
     skipped = module.skipped_steps
     first, last = records[0]["loss"], records[-1]["loss"]
     print(f"\nloss: step 0 {first:.5f}, step {len(records) - 1} {last:.5f}; {skipped} skipped steps")
+    if args.json is not None:
+        stages = {s: statistics.median(x.get(s, 0.0) for x in per_step) * 1e3 for s in STAGES}
+        kind = "cuda allocated" if device.type == "cuda" else "process RSS during the fit"
+        figures = {"config": args.config, "overrides": args.overrides, "device": str(device),
+                   "threads": threads, "precision": precision, "image_size": size, "batch_size": batch,
+                   "steps": args.steps, "warmup": args.warmup, "seconds_per_step": step,
+                   "samples_per_s": batch / step, "peak_memory_gib": peak_gib, "peak_memory_kind": kind,
+                   "rss_before_fit_gib": start_rss, "skipped_steps": skipped, "stages_ms": stages}  # fmt: skip
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.json.with_name(f".{args.json.name}.tmp")
+        tmp.write_text(json.dumps(figures, indent=1) + "\n")
+        os.replace(tmp, args.json)
     if args.compare is not None:
         ours = {r["step"]: r["loss"] for r in records}
         print(f"\n| against {args.compare} | value |\n| --- | ---: |")
         for key, value in compare_losses(ours, read_losses(args.compare), args.window).items():
             print(f"| {key} | {value:.3g} |" if isinstance(value, float) else f"| {key} | {value} |")
+
+
+def start_peak_window() -> float:
+    """This process's resident memory now (GiB), after returning freed heap memory to the system, and the
+    start of a new peak (Linux: the kernel's high-water mark is reset), so that ``fit_peak_gib`` reads the
+    peak of what follows rather than of the scene generation before it. NaN where /proc is missing."""
+    import ctypes
+    import ctypes.util
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim(0)
+        Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
+        return _status_gib("VmRSS")
+    except (OSError, AttributeError):
+        return math.nan
+
+
+def fit_peak_gib() -> float:
+    """The peak resident memory since ``start_peak_window`` (GiB); the process's whole peak (``ru_maxrss``)
+    where the high-water mark cannot be read."""
+    peak = _status_gib("VmHWM")
+    return peak if math.isfinite(peak) else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
+def _status_gib(field: str) -> float:
+    """A memory line of /proc/self/status (kB) in GiB; NaN where it is missing."""
+    try:
+        line = next(x for x in Path("/proc/self/status").read_text().splitlines() if x.startswith(field + ":"))
+    except (OSError, StopIteration):
+        return math.nan
+    return int(line.split()[1]) / 2**20
 
 
 def gsplat_version() -> str:

@@ -1,4 +1,5 @@
 import os
+import signal
 
 import pytest
 import torch
@@ -19,3 +20,15 @@ def pretend_gsplat(monkeypatch):
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(interface, "gsplat_available", lambda: True)
+
+
+@pytest.fixture
+def stop_signals_heeded():
+    """A test that sends itself SIGHUP or SIGINT needs them at their defaults: the suite may run under
+    ``nohup`` or as a background job, which start it with those ignored (and the commands leave an ignored
+    signal ignored)."""
+    defaults = {signal.SIGHUP: signal.SIG_DFL, signal.SIGINT: signal.default_int_handler}
+    saved = {s: signal.signal(s, handler) for s, handler in defaults.items()}
+    yield
+    for s, handler in saved.items():
+        signal.signal(s, handler)

@@ -1,6 +1,7 @@
 """Import a file of ``scripts/`` or ``benchmarks/`` (not packages) as a module, for the tests of those files."""
 
 import importlib.util
+import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -13,6 +14,7 @@ def load_script(name: str, folder: Path = SCRIPTS) -> ModuleType:
     """``<folder>/<name>.py`` (default ``scripts/``) as a fresh module."""
     spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up while the class is built
     spec.loader.exec_module(module)
     return module
 

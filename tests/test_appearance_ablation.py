@@ -1,22 +1,16 @@
 """benchmarks/appearance_ablation.py: its statistics, and a tiny grid run end to end with resumption."""
 
 import csv
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.script_loader import load_benchmark
 
 
 def _runner():
-    spec = importlib.util.spec_from_file_location("appearance_ablation", BENCHMARKS / "appearance_ablation.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("appearance_ablation")
 
 
 def test_paired_differences_pair_by_seed():

@@ -14,7 +14,7 @@ from aesplat.bench import (
     Point,
     Row,
     Setting,
-    context_subset,
+    contexts_of,
     default_sweep,
     main,
     markdown_tables,
@@ -162,44 +162,62 @@ def test_input_size_and_precision_run_their_own_forward(model, scenes):
     assert rows[0].gaussians == 2 * 14 * 14 and rows[2].gaussians == 2 * SIZE * SIZE
 
 
-def test_context_subset_spreads_the_views_and_keeps_the_reference_first():
-    assert context_subset(torch.tensor([0, 10]), 2) == [0, 1]
-    frames = torch.tensor([0, 50, 10, 20, 30, 40])  # outer pair first, then the views between
-    assert context_subset(frames, 2) == [0, 1]
-    assert context_subset(frames, 3) == [0, 1, 3]  # frames 0, 50 and 20: ranks 0, 2 (2.5 rounded), 5
-    assert context_subset(frames, 4) == [0, 1, 3, 4]  # frames 0, 50, 20 and 30: ranks 0, 2, 3, 5
-    assert context_subset(frames, 6) == [0, 1, 2, 3, 4, 5]
-    assert context_subset(torch.tensor([30, 0, 60]), 2) == [0, 2]  # view 0 in the middle: still the first
-    with pytest.raises(ValueError, match="hold 2 context views, not 3"):
-        context_subset(torch.tensor([0, 10]), 3)
+def _labelled(key: str, v: int, first: int = 0) -> BatchedExample:
+    """A scene ``key`` whose context views are frames first, first + 1, ..."""
+    context = replace(views(v), index=torch.arange(first, first + v)[None])
+    return BatchedExample(context=context, target=views(1), scene=[key])
+
+
+def test_contexts_of_matches_the_scenes_by_key_in_the_shards_order():
+    # The 3-view stream leaves out b (no 3-view context) and holds x, a scene the other count left out.
+    stream = [_labelled("a", 3, 10), _labelled("x", 3, 20), _labelled("c", 3, 30), _labelled("d", 3, 40)]
+    read = []
+
+    def reading():
+        for scene in stream:
+            read.append(scene.scene[0])
+            yield scene
+
+    out = contexts_of(reading(), ["a", "b", "c"])
+    assert [None if c is None else c.index[0, 0].item() for c in out] == [10, None, 30]
+    assert read == ["a", "x", "c"]  # read no further than the last scene wanted
+    assert contexts_of(iter(stream[:1]), ["a", "b"])[1] is None  # the stream ends: b has none
 
 
 def test_the_context_views_knob_feeds_each_count_and_renders_the_same_targets():
     torch.manual_seed(0)
     pool = build_model(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0, view_aggregation="pool").eval()
-    torch.manual_seed(2)
     gen = torch.Generator().manual_seed(3)
-    context = replace(views(4), index=torch.tensor([[0, 30, 10, 20]]),
-                      images=torch.rand(1, 4, 3, SIZE, SIZE, generator=gen))  # fmt: skip
-    scene = BatchedExample(context=context, target=views(2), scene=["s"])
+
+    def context(v: int, first: int) -> BatchedViews:
+        return replace(views(v), index=torch.arange(first, first + v)[None],
+                       images=torch.rand(1, v, 3, SIZE, SIZE, generator=gen))  # fmt: skip
+
+    scenes = [BatchedExample(context=context(2, 0), target=views(2), scene=[f"s{i}"]) for i in range(2)]
+    contexts = {3: [context(3, 10), context(3, 20)], 4: [context(4, 30), context(4, 40)],
+                6: [context(6, 50), None]}  # s1 carries no 6-view context  # fmt: skip
     baseline, points = default_sweep(SH_DEGREE, SIZE, knobs=["context_views"])
-    bench = Bench(pool, [scene], torch.device("cpu"), repeats=1, warmup=0, progress=False)
+    bench = Bench(pool, scenes, torch.device("cpu"), repeats=1, warmup=0, progress=False, contexts=contexts)
     rows = {r.label: r for r in bench.run(points, baseline, warmup_runs=0)}
-    assert "hold 4 context views, not 6" in rows["6 views"].skipped
+    assert "1 of 2 scenes (s1) carry no 6-view context" in rows["6 views"].skipped
     for count in (2, 3, 4):
         row = rows[f"{count} views"]
         assert not row.skipped and row.gaussians == count * SIZE * SIZE
-        keep = context_subset(context.index[0], count)
-        with torch.no_grad():  # the same targets, rendered from the Gaussians of `count` context views
-            out = pool(context.images[:, keep], scene.target.images)
-            img = render(out.gaussians, out.extrinsics[:, count:], out.intrinsics[:, count:], SIZE, SIZE).color
-        assert row.psnr == pytest.approx(psnr(img[0], scene.target.images[0]).mean().item(), abs=1e-4)
+        psnrs = []
+        for i, scene in enumerate(scenes):
+            fed = scene.context if count == 2 else contexts[count][i]
+            with torch.no_grad():  # the same targets, rendered from the Gaussians of that count's context
+                out = pool(fed.images, scene.target.images)
+                img = render(out.gaussians, out.extrinsics[:, count:], out.intrinsics[:, count:], SIZE,
+                             SIZE).color  # fmt: skip
+            psnrs += psnr(img[0], scene.target.images[0]).tolist()
+        assert row.psnr == pytest.approx(sum(psnrs) / len(psnrs), abs=1e-4)
         assert math.isfinite(row.rot_err_deg)
     assert len({rows[f"{c} views"].psnr for c in (2, 3, 4)}) == 3
     # The paper's head takes its own count only: the others are reported, not fatal.
-    concat = Bench(build_model(size="tiny", sh_degree=SH_DEGREE), [scene], torch.device("cpu"), repeats=1,
-                   warmup=0, progress=False)  # fmt: skip
-    concat_rows = {r.label: r for r in concat.run(points, points[0].setting, warmup_runs=1)}  # warm at 2
+    concat = Bench(build_model(size="tiny", sh_degree=SH_DEGREE), scenes, torch.device("cpu"), repeats=1,
+                   warmup=0, progress=False, contexts=contexts)  # fmt: skip
+    concat_rows = {r.label: r for r in concat.run(points, baseline, warmup_runs=1)}
     assert not concat_rows["2 views"].skipped
     assert "view_aggregation: pool" in concat_rows["3 views"].skipped
 

@@ -48,7 +48,7 @@ def test_a_user_error_is_one_line(capsys):
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT])
-def test_a_signal_runs_the_cleanups_and_exits_128_plus_its_number(signum, capsys):
+def test_a_signal_runs_the_cleanups_and_exits_128_plus_its_number(signum, capsys, stop_signals_heeded):
     cleaned = []
 
     def stopped():

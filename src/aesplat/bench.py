@@ -6,8 +6,8 @@ For a trained model on evaluation scenes, each knob is swept on its own from a b
 data's resolution, all Gaussians, fp32, the default renderer backend):
 
     sh_degree         SH bands used when rendering (0 .. the model's degree)
-    context_views     context views fed to the model (2, 3, 4, 6), chosen from each evaluation sample's
-                      (``context_subset``), rendered at the same target views
+    context_views     context views fed to the model (2, 3, 4, 6): each evaluation sample's k-view context
+                      (the one `aesplat test --data.num_context_views k` evaluates), the same target views
     input_size        side of the images fed to the model (multiples of its patch size); Gaussians rendered
                       at full size
     render_size       side of the rendered image, upsampled (bilinear) to full size for the metrics
@@ -37,7 +37,7 @@ import os
 import platform
 import statistics
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -94,29 +94,27 @@ def model_input_sizes(native: int, scales: Sequence[float], patch: int) -> list[
     return sorted({max(2 * patch, round(native * s / patch) * patch) for s in scales} | {native})
 
 
-def context_subset(frames: Tensor, count: int) -> list[int]:
-    """Which ``count`` of a sample's context views to feed the model, given their frame indices [Vc]: views
-    spread evenly over the sample's frame span (its first and last frames, then evenly between), always with
-    view 0, the reference frame, which stays first; the others in their order in the sample."""
-    v = frames.shape[0]
-    if not 2 <= count <= v:
-        raise ValueError(f"the evaluation samples hold {v} context views, not {count}: evaluate on samples "
-                         "with more (aesplat bench --data-context-views)")  # fmt: skip
-    by_frame = sorted(range(v), key=lambda i: (int(frames[i]), i))
-    picked = {by_frame[round(j * (v - 1) / (count - 1))] for j in range(count)}
-    if 0 not in picked:  # the reference frame replaces the picked view nearest to it in frame order
-        rank = by_frame.index(0)
-        picked.remove(min(picked, key=lambda i: (abs(by_frame.index(i) - rank), i)))
-        picked.add(0)
-    return [0, *sorted(picked - {0})]
+def contexts_of(stream: Iterable[BatchedExample], keys: Sequence[str]) -> list[BatchedViews | None]:
+    """The context views ``stream`` gives each scene of ``keys``, None where it gives none.
 
-
-def select_context(scene: BatchedExample, count: int | None) -> BatchedExample:
-    """``scene`` (B = 1) with ``count`` of its context views (``context_subset``); None: all of them."""
-    if count is None or count == scene.context.num_views:
-        return scene
-    keep = context_subset(scene.context.index[0], count)
-    return replace(scene, context=scene.context.apply(lambda t: t[:, keep]))
+    ``stream`` yields single scenes (B = 1) with the k-view contexts of the evaluation samples, in the shards'
+    order, leaving out the samples that carry no k-view context; ``keys`` are scenes read from the same shards
+    in the same order (at another count). A scene of the stream that is not among ``keys`` is one the other
+    count left out, and is passed over. The stream is read up to the last of ``keys`` (or to its end when that
+    scene has no k-view context)."""
+    wanted = set(keys)
+    scenes = iter(stream)
+    head = next(scenes, None)
+    out: list[BatchedViews | None] = []
+    for key in keys:
+        while head is not None and head.scene[0] not in wanted:
+            head = next(scenes, None)
+        if head is not None and head.scene[0] == key:
+            out.append(head.context)
+            head = next(scenes, None) if len(out) < len(keys) else None
+        else:
+            out.append(None)
+    return out
 
 
 def default_sweep(
@@ -260,6 +258,9 @@ class Bench:
 
     model: called as ``model(context_images, target_images)`` (see aesplat.model), in eval mode.
     scenes: BatchedExample with B = 1 each, float images on ``device``, square images of one size.
+    contexts: per count of context views k, the k-view context of each scene (``scenes`` order; None for a
+        scene whose evaluation sample carries none): the ``context_views`` knob feeds these, so every count
+        renders the same target views. A scene's own count needs no entry.
     render_kwargs: keyword arguments of ``render`` every point shares (background, tile_size, ...); a
         setting's own ``render_options`` override them.
     cameras: ``model.cameras`` of the checkpoint (``predicted`` or ``dataset``: see ``forward_batch``).
@@ -276,14 +277,33 @@ class Bench:
         render_kwargs: dict | None = None,
         progress: bool = True,
         cameras: str = "predicted",
+        contexts: Mapping[int, Sequence[BatchedViews | None]] | None = None,
     ) -> None:
         if not scenes:
             raise ValueError("the benchmark needs at least one evaluation scene")
         self.model, self.scenes, self.device = model, list(scenes), device
+        self.contexts = dict(contexts or {})
         self.repeats, self.warmup, self.progress, self.cameras = repeats, warmup, progress, cameras
         self.render_kwargs = dict(render_kwargs or {})
         self.native = scenes[0].target.images.shape[-1]
         self._forwards: dict[tuple, list[_Forward]] = {}
+
+    def with_context(self, count: int | None) -> list[BatchedExample]:
+        """Every scene with ``count`` context views (None: its own); a ValueError when some scene's evaluation
+        sample carries no context of that count."""
+        if count is None:
+            return self.scenes
+        contexts = self.contexts.get(count, [None] * len(self.scenes))
+        out = [s if s.context.num_views == count else None if c is None else replace(s, context=c)
+               for s, c in zip(self.scenes, contexts)]  # fmt: skip
+        missing = [s.scene[0] for s, o in zip(self.scenes, out) if o is None]
+        if missing:
+            raise ValueError(
+                f"{len(missing)} of {len(out)} scenes ({', '.join(missing[:2])}{', ...' * (len(missing) > 2)}) "
+                f"carry no {count}-view context: too few frames between their outer context views, or shards "
+                f"converted with --eval-context-views below {count}"
+            )
+        return out
 
     @torch.no_grad()
     def forward(self, setting: Setting) -> list[_Forward]:
@@ -296,8 +316,7 @@ class Bench:
         autocast = (torch.autocast(self.device.type, dtype=torch.bfloat16) if setting.precision == "bf16"
                     else nullcontext())  # fmt: skip
         results = []
-        for i, scene in enumerate(self.scenes):
-            scene = select_context(scene, setting.context_views)
+        for i, scene in enumerate(self.with_context(setting.context_views)):
             size = setting.input_size
             resized = replace(scene, context=resize_views(scene.context, size),
                               target=resize_views(scene.target, size))  # fmt: skip
@@ -370,7 +389,7 @@ class Bench:
         The first few calls in a process are several times slower on the CPU (allocator and kernel warm-up),
         longer than one per-setting warm-up run absorbs; without this the first settings measured look slow.
         """
-        scene = select_context(self.scenes[0], setting.context_views)
+        scene = self.with_context(setting.context_views)[0]
         options = {**self.render_kwargs, **dict(setting.render_options), "backend": setting.backend}
         for _ in range(runs):
             out = forward_batch(self.model, scene, self.cameras)
@@ -396,10 +415,17 @@ class Bench:
 def single_scenes(batches: Iterable[BatchedExample], limit: int, device: torch.device) -> list[BatchedExample]:
     """Split loader batches into at most ``limit`` single-scene examples (B = 1), float images on ``device``."""
     scenes: list[BatchedExample] = []
+    for scene in each_scene(batches, device):
+        if len(scenes) >= limit:
+            break
+        scenes.append(scene)
+    return scenes
+
+
+def each_scene(batches: Iterable[BatchedExample], device: torch.device) -> Iterator[BatchedExample]:
+    """Loader batches split into single-scene examples (B = 1), float images on ``device``, as they are read."""
     for batch in batches:
         for b in range(batch.batch_size):
-            if len(scenes) >= limit:
-                return scenes
 
             def pick(t: Tensor | None, b: int = b) -> Tensor | None:
                 return None if t is None else t[b : b + 1]
@@ -412,8 +438,7 @@ def single_scenes(batches: Iterable[BatchedExample], limit: int, device: torch.d
                 gap=pick(batch.gap),
                 dataset=batch.dataset[b : b + 1],
             )
-            scenes.append(one.to(device).float_images())
-    return scenes
+            yield one.to(device).float_images()
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -617,12 +642,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--process-warmup", type=int, default=5,
                         help="untimed baseline passes before the first measurement")  # fmt: skip
     parser.add_argument("--context-views", type=_ints, default=[2, 3, 4, 6],
-                        help="context-view counts fed to the model, chosen from each evaluation sample's (a "
-                        "count above what the samples hold, or one the model cannot take, is reported as not "
-                        "measured)")  # fmt: skip
+                        help="context-view counts fed to the model: each evaluation sample's k-view context, "
+                        "the same targets (a count some scene carries no context of, or one the model cannot "
+                        "take, is reported as not measured)")  # fmt: skip
     parser.add_argument("--data-context-views", type=int, default=None,
-                        help="context views the evaluation samples hold (default: the run's "
-                        "data.num_context_views)")  # fmt: skip
+                        help="context views of every other knob's settings (default: the run's "
+                        "data.num_context_views, the lower end of a range)")  # fmt: skip
     parser.add_argument("--knobs", type=_names, default=None,
                         help=f"comma-separated subset of {', '.join(KNOB_TITLES)} (default: all)")  # fmt: skip
     parser.add_argument(
@@ -669,7 +694,15 @@ def build_parser() -> argparse.ArgumentParser:
 def evaluation_scenes(loaded, data_root: str | None, image_size: int | None, limit: int, device: torch.device,
                       context_views: int | None = None) -> list[BatchedExample]:  # fmt: skip
     """The first ``limit`` test scenes of the run's data set, one per example, on ``device``;
-    ``context_views``: the number of context views its evaluation samples hold (default: the run's)."""
+    ``context_views``: the count of context views (default: the run's; see ``evaluation_stream``)."""
+    return single_scenes(evaluation_stream(loaded, data_root, image_size, context_views), limit, device)
+
+
+def evaluation_stream(loaded, data_root: str | None, image_size: int | None, context_views: int | None = None):
+    """The test stream of the run's data set (``aesplat.data.EvalStream``) with the k-view contexts of its
+    evaluation samples for k = ``context_views`` (default: the run's ``data.num_context_views``, the lower
+    end of a range), as ``aesplat test --data.num_context_views k`` reads them. A UserError when the shards
+    carry no contexts of that count."""
     from .data import DataModule
 
     data = dict(loaded.data or {})
@@ -689,10 +722,31 @@ def evaluation_scenes(loaded, data_root: str | None, image_size: int | None, lim
     known = set(inspect.signature(DataModule).parameters)
     datamodule = DataModule(**{k: v for k, v in data.items() if k in known})
     try:
-        stream = datamodule.eval_dataset("test")
+        return datamodule.eval_dataset("test")
     except FileNotFoundError as err:
         raise SystemExit(f"aesplat bench: {err}") from err
-    return single_scenes(stream, limit, device)
+
+
+def context_views_of(
+    loaded,
+    data_root: str | None,
+    image_size: int | None,
+    scenes: Sequence[BatchedExample],
+    counts: Iterable[int],
+    device: torch.device,
+) -> dict[int, list[BatchedViews | None]]:
+    """Per count k, the k-view context the evaluation sample of each of ``scenes`` carries (None where it
+    carries none; every entry None when the shards were converted for fewer views)."""
+    keys = [s.scene[0] for s in scenes]
+    contexts = {}
+    for k in sorted(set(counts) - {s.context.num_views for s in scenes}):
+        try:
+            stream = evaluation_stream(loaded, data_root, image_size, k)
+        except UserError:
+            contexts[k] = [None] * len(keys)
+            continue
+        contexts[k] = contexts_of(each_scene(stream, device), keys)
+    return contexts
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -708,6 +762,9 @@ def main(argv: list[str] | None = None) -> int:
                                args.data_context_views)  # fmt: skip
     if not scenes:
         raise SystemExit("aesplat bench: the test split holds no scenes")
+    contexts = {}
+    if args.knobs is None or "context_views" in args.knobs:
+        contexts = context_views_of(loaded, args.data_root, args.image_size, scenes, args.context_views, device)
     native = scenes[0].target.images.shape[-1]
     # The scenes' tensors are float32 on `device`: "auto" picks what a render of them would use.
     auto = get_backend("auto", device)[0]
@@ -723,7 +780,7 @@ def main(argv: list[str] | None = None) -> int:
     render_kwargs.pop("compile", None)  # compiling is a knob of its own here
     bench = Bench(loaded.model, scenes, device, repeats=args.repeats, warmup=args.warmup,
                   render_kwargs=render_kwargs, progress=not args.no_progress,
-                  cameras=loaded.cameras)  # fmt: skip
+                  cameras=loaded.cameras, contexts=contexts)  # fmt: skip
     rows = bench.run(points, baseline, warmup_runs=args.process_warmup)
     if args.out is not None:
         out = Path(args.out)

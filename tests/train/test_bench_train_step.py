@@ -1,6 +1,7 @@
 """benchmarks/bench_train_step.py: config overrides, recorded loss curves and their comparison."""
 
 import csv
+import json
 import math
 import os
 import subprocess
@@ -67,8 +68,16 @@ def test_recorded_losses_repeat_with_the_seed_and_change_without_it(bench, monke
     """The same seed gives the same losses (for-loop and foreach AdamW are bit-identical on the CPU); another
     seed gives other weights and batches. The table and the recorded CSV agree on the step count."""
     ref = tmp_path / "ref.csv"
-    out = _run(bench, monkeypatch, capsys, "--set", "model.optim.impl=for_loop", "--losses", str(ref))
+    figures = tmp_path / "figures" / "step.json"
+    out = _run(bench, monkeypatch, capsys, "--set", "model.optim.impl=for_loop", "--losses", str(ref), "--json",
+               str(figures))  # fmt: skip
     assert "| seconds per step (median) |" in out and "--set model.optim.impl=for_loop" in out
+    saved = json.loads(figures.read_text())  # the figures the table prints
+    assert f"| seconds per step (median) | {saved['seconds_per_step']:.3f} |" in out
+    assert saved["overrides"] == ["model.optim.impl=for_loop"] and saved["steps"] == 3
+    assert 0 < saved["rss_before_fit_gib"] <= saved["peak_memory_gib"] and set(saved["stages_ms"]) == set(
+        bench.STAGES
+    )
     recorded = bench.read_losses(ref)
     assert sorted(recorded) == [0, 1, 2, 3] and all(math.isfinite(v) for v in recorded.values())
 

@@ -3,10 +3,13 @@ batches): a ``pool`` network takes them all, a ``concat`` one is refused in one 
 
 import csv
 import json
+from pathlib import Path
+from types import SimpleNamespace
 
 import lightning as L
 import pytest
 import torch
+from torch import Tensor
 from torch.utils.data import DataLoader
 
 from aesplat.errors import UserError
@@ -17,6 +20,7 @@ from aesplat.train.module import context_view_counts
 from aesplat.types import BatchedExample, BatchedViews
 
 SIZE = 28
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _views(b: int, v: int, gen: torch.Generator, first_frame: int) -> BatchedViews:
@@ -130,3 +134,81 @@ def test_summary_gives_every_metric_per_context_count():
     assert per_count["2"]["rot_err_deg"] == 3.0
     assert per_count["4"]["num_scenes"] == 1 and per_count["4"]["psnr"] == 25.0
     assert set(per_count) == {"2", "4"}
+
+
+def test_fit_with_a_range_then_test_and_bench_at_each_count_on_the_same_targets(tmp_path, monkeypatch):
+    """The commands end to end: `aesplat fit` of a pool model with data.num_context_views [2, 4] (the logged
+    count follows the seeded draw of every step and varies), then `aesplat test --data.num_context_views k`
+    and `aesplat bench --context-views` for k = 2, 3, 4: the shards' k-view contexts, the same target frames."""
+    from aesplat.bench import main as bench
+    from aesplat.cli import run_lightning
+    from aesplat.data import convert_dataset, generate_dataset
+    from aesplat.data.sampler import ContextCount
+
+    monkeypatch.chdir(REPO)
+    monkeypatch.setattr("sys.argv", ["aesplat"])  # the commands' own arguments only
+    generate_dataset(tmp_path / "src", scenes=2, test_scenes=2, frames=12, height=32, width=40, seed=0,
+                     progress=False)  # fmt: skip
+    # Context pairs wide enough for 4 views on every test scene, so each count keeps every scene.
+    index = json.loads((tmp_path / "src" / "evaluation_index.json").read_text())
+    index = {key: {"context": [1, 10], "target": [4, 7], "overlap": 0.5} for key in index}
+    (tmp_path / "index.json").write_text(json.dumps(index))
+    shards = tmp_path / "shards"
+    convert_dataset(tmp_path / "src", shards, size=SIZE, eval_index=tmp_path / "index.json", progress=False)
+    run = tmp_path / "run"
+    common = ["-c", "conf/smoke.yaml", "--data.root", str(shards), "--trainer.default_root_dir", str(run),
+              "--trainer.enable_progress_bar", "false"]  # fmt: skip
+    run_lightning(["fit", *common, "--model.net.view_aggregation", "pool", "--data.num_context_views", "[2,4]",
+                   "--trainer.max_steps", "4", "--trainer.logger+=CSVLogger", "--trainer.logger.save_dir",
+                   str(run), "--trainer.logger.name", "", "--trainer.logger.version", ""])  # fmt: skip
+    with open(run / "metrics.csv") as f:
+        logged = {int(r["step"]): int(float(r["train/context_views"])) for r in csv.DictReader(f)
+                  if r["train/context_views"]}  # fmt: skip
+    assert logged == {step: ContextCount(2, 4).at(0, step) for step in range(4)}  # data.seed 0
+    assert len(set(logged.values())) > 1
+
+    frames = {}
+    for k in (2, 3, 4):
+        # The run's own config; the checkpoint brings the pool head (model.net is read from it).
+        last = str(run / "checkpoints" / "last.ckpt")
+        run_lightning(["test", "-c", str(run / "config.yaml"), "--data.num_context_views", str(k),
+                       "--trainer.logger", "false", "--ckpt_path", last])  # fmt: skip
+        with open(run / "test-latest" / "per_scene.csv") as f:
+            rows = list(csv.DictReader(f))
+        assert {int(r["context_views"]) for r in rows} == {k} and len(rows) == len(index)
+        for r in rows:
+            context = [int(c) for c in r["context_frames"].split()]
+            assert len(context) == k and context[0] == 1 and set(context) <= set(range(1, 11)) - {4, 7}
+        frames[k] = {r["scene"]: r["target_frames"] for r in rows}
+    assert frames[2] == frames[3] == frames[4] == {key: "4 7" for key in index}
+
+    assert bench(["--ckpt", str(run / "checkpoints" / "last.ckpt"), "--knobs", "context_views",
+                  "--context-views", "2,3,4,9", "--repeats", "1", "--warmup", "0", "--process-warmup", "0",
+                  "--no-progress", "--out", str(tmp_path / "bench")]) == 0  # fmt: skip
+    rows = {r["label"]: r for r in json.loads((tmp_path / "bench" / "bench.json").read_text())["rows"]}
+    for k in (2, 3, 4):
+        assert not rows[f"{k} views"]["skipped"] and rows[f"{k} views"]["gaussians"] == k * SIZE * SIZE
+    assert "carry no 9-view context" in rows["9 views"]["skipped"]
+
+
+def test_the_target_views_pose_errors_leave_the_other_context_views_out(tmp_path, monkeypatch):
+    """rot_err_deg averages over every view but view 0, rot_err_target_deg over the target views alone: the
+    same views at every count of context views."""
+    module = _module("pool", tmp_path)
+    batch = _batch(3, seed=0)  # views: context 0, 1, 2, then one target
+    truth = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1)
+
+    def turned(degrees: float) -> Tensor:  # a rotation about the camera's y axis
+        a = torch.tensor(degrees).deg2rad()
+        c, s = a.cos(), a.sin()
+        return torch.tensor([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]])
+
+    predicted = truth.clone()
+    predicted[:, 2] = predicted[:, 2] @ turned(30.0)  # the extra context view, 30° off
+    predicted[:, 3] = predicted[:, 3] @ turned(10.0)  # the target, 10° off
+    out = SimpleNamespace(extrinsics=predicted)
+    rendered = SimpleNamespace(color=batch.target.images.float() / 255)
+    monkeypatch.setattr(module, "forward", lambda *args, **kwargs: (out, rendered))
+    metrics, _ = module._evaluate(batch)
+    assert metrics["rot_err_deg"].tolist() == pytest.approx([40 / 3] * 2, abs=1e-3)  # views 1, 2, 3: 0, 30, 10
+    assert metrics["rot_err_target_deg"].tolist() == pytest.approx([10.0] * 2, abs=1e-3)

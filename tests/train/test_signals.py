@@ -116,7 +116,9 @@ def stop_run(smoke_shards, tmp_path, sender: Callback) -> tuple[L.Trainer, Signa
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
-def test_a_stop_signal_finishes_the_step_saves_it_and_ends_the_fit(smoke_shards, tmp_path, signum):
+def test_a_stop_signal_finishes_the_step_saves_it_and_ends_the_fit(
+    smoke_shards, tmp_path, signum, stop_signals_heeded
+):
     before = signal.getsignal(signum)
     trainer, signals = stop_run(smoke_shards, tmp_path, StopSignalDuringStep(at=1, signum=signum))
     assert (signals.stop_signal, signals.stopped_at, trainer.global_step) == (signum, 2, 2)

@@ -292,7 +292,8 @@ def decode_evaluation_sample(raw: dict[str, bytes], cfg: StreamConfig) -> Exampl
     k = cfg.context_views.lo
     chosen = meta.get("context_views", {}).get(str(k)) or (context if len(context) == k else None)
     if chosen is None:
-        raise NoContext(f"it carries no {k}-view context (convert with --eval-context-views {k} or more)")
+        raise NoContext(f"it carries no {k}-view context (too few frames between its outer context views, or "
+                        f"converted with --eval-context-views below {k})")  # fmt: skip
     want = len(target) if cfg.num_target_views is None else cfg.num_target_views
     if len(target) < want:
         raise ValueError(f"sample has {len(target)} targets, the data module wants {want}")

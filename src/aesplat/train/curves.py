@@ -158,9 +158,10 @@ class LearningCurve(Callback):
         for raw in self._split_batches(trainer, split):
             batch = pl_module.on_after_batch_transfer(raw.to(pl_module.device), 0)
             metrics, _ = pl_module._evaluate(batch)  # per scene, as `aesplat test` scores them
-            for key, values in metrics.items():
-                sums[key] += float(values.sum())
-                counts[key] += values.numel()
+            for key in _METRICS:  # the curve's columns (the target views' pose errors: the test CSV's only)
+                if key in metrics:
+                    sums[key] += float(metrics[key].sum())
+                    counts[key] += metrics[key].numel()
             if split not in self._copy:
                 pairs += [(batch.context.images[i : i + 1].cpu(), batch.target.images[i : i + 1].cpu())
                           for i in range(batch.batch_size)]  # fmt: skip

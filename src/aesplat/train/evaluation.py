@@ -23,9 +23,14 @@ from .metrics import OVERLAP_BUCKETS
 # psnr_highlight / psnr_rest: PSNR on the target pixels the shards mark as specular highlights and on the others
 # (per image, averaged over a scene's views that have such pixels; empty where none has); highlight_fraction:
 # the share of highlight pixels. Empty for data without highlight masks.
-METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "psnr_highlight", "psnr_rest",
-           "highlight_fraction")  # fmt: skip
-CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", "context_views", *METRICS)
+# rot_err_target_deg / trans_err_target_deg: the pose errors of the target views alone, the same views at
+# every count of context views (rot_err_deg / trans_err_deg average over the other context views too).
+METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "rot_err_target_deg",
+           "trans_err_target_deg", "psnr_highlight", "psnr_rest", "highlight_fraction")  # fmt: skip
+# context_frames / target_frames: the frames evaluated (space-separated, view 0 first), so evaluations at
+# different counts of context views can be checked to render the same targets.
+CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", "context_views", "context_frames",
+               "target_frames", *METRICS)  # fmt: skip
 
 
 @dataclass

@@ -234,7 +234,8 @@ class AESplatModule(LightningModule):
 
     # ----------------------------------------------------------------------------------------- evaluation
     def _evaluate(self, batch: BatchedExample) -> tuple[dict[str, Tensor], RenderOutput]:
-        """Per-scene metrics: image metrics averaged over each scene's target views, pose errors over views."""
+        """Per-scene metrics: image metrics averaged over each scene's target views, pose errors over views
+        (all but view 0, and the target views alone: the same views whatever the count of context views)."""
         out, rendered = self(batch)
         b, vt = batch.target.images.shape[:2]
         pred, target = rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1)
@@ -246,12 +247,15 @@ class AESplatModule(LightningModule):
             gt = torch.cat([batch.context.extrinsics, batch.target.extrinsics], dim=1)
             rot, trans = relative_pose_errors(out.extrinsics, gt)
             metrics["rot_err_deg"], metrics["trans_err_deg"] = rot.mean(1), trans.mean(1)
+            metrics["rot_err_target_deg"] = rot[:, -vt:].mean(1)
+            metrics["trans_err_target_deg"] = trans[:, -vt:].mean(1)
         return metrics, rendered
 
     def validation_step(self, batch: BatchedExample, batch_idx: int) -> None:
         metrics, rendered = self._evaluate(batch)
         for key, values in metrics.items():
-            self.val_means[key].update(values)
+            if key in self.val_means:  # the target views' pose errors go to the test CSV only
+                self.val_means[key].update(values)
         if batch_idx == 0:
             self._log_images("val/images", batch, rendered)
 
@@ -278,6 +282,8 @@ class AESplatModule(LightningModule):
                 "bucket": overlap_bucket(overlap),
                 "gap": None if batch.gap is None else int(batch.gap[i]),
                 "context_views": batch.context.num_views,
+                "context_frames": " ".join(str(f) for f in batch.context.index[i].tolist()),
+                "target_frames": " ".join(str(f) for f in batch.target.index[i].tolist()),
                 **{k: float(v[i]) for k, v in metrics.items()},
             }
             self._test_rows.append(row)
