@@ -26,6 +26,9 @@ STEPS = 6  # per training job; last.ckpt every 2 steps
 PREEMPT_AT = 2  # the preempted job holds before this step (after last.ckpt of step 2) until it is signalled
 CPU_JOB = ["--gpus-per-node=0", "--ntasks-per-node=2", "--cpus-per-task=1"]
 FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "BOOT_FAIL"}
+# A file to which every submission appends {"role": ..., "job_id": ...} as a line of JSON, when set:
+# benchmarks/slurm_jobs.py learns from it which job was which (it reads their times from slurmctld's log).
+RECORD_JOBS = os.environ.get("AESPLAT_SLURM_RECORD_JOBS")
 
 pytestmark = pytest.mark.slurm
 
@@ -60,12 +63,17 @@ def job_env() -> dict[str, str]:
     }
 
 
-def sbatch(env: dict, script: str, options: list[str], args: list[str], log: Path) -> str:
-    """Submit ``slurm/<script>`` from the repository root; returns the job id."""
+def sbatch(env: dict, script: str, options: list[str], args: list[str], log: Path, role: str) -> str:
+    """Submit ``slurm/<script>`` from the repository root; returns the job id. ``role``: what the job is
+    for (uninterrupted, preempted, eval, mismatch), recorded with its id when AESPLAT_SLURM_RECORD_JOBS asks."""
     command = ["sbatch", "--parsable", f"--output={log}", *options, str(SLURM / script), *args]
     proc = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
-    return proc.stdout.strip().split(";")[0]
+    job_id = proc.stdout.strip().split(";")[0]
+    if RECORD_JOBS:
+        with open(RECORD_JOBS, "a") as record:
+            record.write(json.dumps({"role": role, "job_id": job_id}) + "\n")
+    return job_id
 
 
 def job_info(env: dict, job_id: str) -> dict[str, str]:
@@ -138,7 +146,8 @@ def uninterrupted(job_env, smoke_shards, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("slurm_uninterrupted")
     run_dir, record, log = tmp / "run", tmp / "record", tmp / "job.out"
     started = time.monotonic()
-    job_id = sbatch(job_env, "train.sbatch", CPU_JOB, fit_args(smoke_shards, run_dir, record, tmp), log)
+    args = fit_args(smoke_shards, run_dir, record, tmp)
+    job_id = sbatch(job_env, "train.sbatch", CPU_JOB, args, log, "uninterrupted")
     info = wait_for_end(job_env, job_id, log)
     info["seconds"] = time.monotonic() - started
     return info, run_dir, record
@@ -153,7 +162,7 @@ def preempted(job_env, smoke_shards, uninterrupted, tmp_path_factory):
     run_dir, record, log = tmp / "run", tmp / "record", tmp / "job.out"
     started = time.monotonic()
     args = fit_args(smoke_shards, run_dir, record, tmp, hold_at=PREEMPT_AT)
-    job_id = sbatch(job_env, "train.sbatch", CPU_JOB, args, log)
+    job_id = sbatch(job_env, "train.sbatch", CPU_JOB, args, log, "preempted")
     last = run_dir / "checkpoints" / "last.ckpt"
     wait_until(lambda: last.exists() or job_info(job_env, job_id)["JobState"] in FINAL_STATES, "step 2")
     assert job_info(job_env, job_id)["JobState"] == "RUNNING", log.read_text()
@@ -221,7 +230,7 @@ def test_eval_job_writes_per_scene_csv_and_summary(job_env, smoke_shards, uninte
     args = ["-c", "conf/smoke.yaml", "--data.root", str(smoke_shards), "--ckpt_path", str(ckpt),
             "--trainer.default_root_dir", str(run_dir), "--trainer.logger", "false",
             "--trainer.enable_progress_bar", "false"]  # fmt: skip
-    job_id = sbatch(job_env, "eval.sbatch", ["--gpus-per-node=0", "--cpus-per-task=1"], args, log)
+    job_id = sbatch(job_env, "eval.sbatch", ["--gpus-per-node=0", "--cpus-per-task=1"], args, log, "eval")
     info = wait_for_end(job_env, job_id, log)
     assert info["JobState"] == "COMPLETED", info["log"][-6000:]
     with open(out / "per_scene.csv") as f:
@@ -237,7 +246,7 @@ def test_job_with_tasks_not_matching_gpus_fails_fast(job_env, tmp_path):
     log = tmp_path / "mismatch.out"
     env = {**job_env, "AESPLAT_SLURM_CPU": "0"}  # the GPU path: 2 GPU slots, 1 task
     options = ["--gpus-per-node=2", "--ntasks-per-node=1", "--cpus-per-task=1"]
-    job_id = sbatch(env, "train.sbatch", options, ["-c", "conf/smoke.yaml"], log)
+    job_id = sbatch(env, "train.sbatch", options, ["-c", "conf/smoke.yaml"], log, "mismatch")
     info = wait_for_end(env, job_id, log)
     assert (info["JobState"], info["ExitCode"]) == ("FAILED", "2:0"), info
     assert "2 GPUs per node but 1 tasks per node" in info["log"]
