@@ -391,8 +391,10 @@ def _number(value: object) -> float:
         raise TypeError("a boolean is not a figure")
     if isinstance(value, int | float):
         return float(value)
-    match = NUMBER.match(str(value).strip().replace("−", "-").replace(",", ""))
-    if not match:
+    text = str(value).strip().replace("−", "-").replace(",", "")
+    match = NUMBER.match(text)
+    rest = text[match.end() :] if match else ""
+    if not match or rest[:1].isalnum() or rest[:1] == "_":  # "1976cb4" is a commit, not 1976
         raise ValueError(f"{value!r} is not a number")
     return float(match.group(0))
 

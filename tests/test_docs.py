@@ -322,6 +322,7 @@ def _figures_module():
 def figures(monkeypatch):
     module = _figures_module()
     source = {"test": {"trained": {"psnr": 20.0512, "rot": 3.3049}, "gain": -0.384, "commit": "d2696ad",
+                       "commit2": "1976cb4",
                        "wall_seconds": 298.4, "date": "2026-11-26T08:15:00+00:00", "scenes": 1536},
               "rows": [{"step": "0", "psnr": "19.5"}, {"step": "600", "psnr": "20.05"},
                        {"step": "600", "psnr": "21.0", "seed": "1"}],
@@ -341,7 +342,8 @@ def _fig(key: str, text: str, spec: str = "") -> str:
      ("test.scenes", "1,536", ",d"), ("test.trained.psnr", "+20.05", "+.2f"),
      ("test.wall_seconds", "4 min 58 s", "duration"), ("rows[1].step", "10 min", "duration"),
      ("test.date", "2026-11-26", "date"),
-     ("test.commit", "d2696ad", ""), ("rows[step=600].psnr", "20.05", ""), ("rows[1].psnr", "20.05", ""),
+     ("test.commit", "d2696ad", ""), ("test.commit2", "1976cb4", ""),
+     ("rows[step=600].psnr", "20.05", ""), ("rows[1].psnr", "20.05", ""),
      ("rows[step=600,seed=1].psnr", "21.0", ""), ("requires[torch]", "2.11", "floor"),
      ("test.trained.rot", "3.30", "")],
 )  # fmt: skip
@@ -353,7 +355,8 @@ def test_a_figure_agrees_with_its_source(figures, key, text, spec):
     ("key", "text", "spec"),
     [("test.trained.psnr", "20.06", ""), ("test.trained.psnr", "19.98", ""), ("test.gain", "0.38", ""),
      ("test.scenes", "1,535", ""), ("test.trained.psnr", "20.05", "+.2f"), ("test.wall_seconds", "2 min 37 s",
-     "duration"), ("test.commit", "dd26b29", ""), ("rows[step=0].psnr", "20.05", ""),
+     "duration"), ("test.commit", "dd26b29", ""), ("test.commit2", "1976", ""),
+     ("rows[step=0].psnr", "20.05", ""),
      ("requires[torch]", "2.13", "floor"), ("test.trained.rot", "3.31", "")],
 )  # fmt: skip
 def test_a_figure_that_disagrees_with_its_source_is_reported(figures, key, text, spec):
