@@ -41,10 +41,14 @@ def job_env() -> dict[str, str]:
     if shutil.which("sbatch") is None:
         problem = "SLURM's client commands are not installed"
     else:
-        proc = subprocess.run(["sinfo", "-h", "-o", "%T"], env={**os.environ, "SLURM_CONF": conf},
-                              capture_output=True, text=True, timeout=30)  # fmt: skip
-        if proc.returncode != 0 or not proc.stdout.strip():
-            problem = f"no SLURM cluster answers at {conf} ({proc.stderr.strip()[-200:]})"
+        try:
+            proc = subprocess.run(["sinfo", "-h", "-o", "%T"], env={**os.environ, "SLURM_CONF": conf},
+                                  capture_output=True, text=True, timeout=30)  # fmt: skip
+        except subprocess.TimeoutExpired:  # a configuration whose controller is not running
+            problem = f"no SLURM cluster answers at {conf} (sinfo waited 30 s)"
+        else:
+            if proc.returncode != 0 or not proc.stdout.strip():
+                problem = f"no SLURM cluster answers at {conf} ({proc.stderr.strip()[-200:]})"
     if problem:
         if os.environ.get("CI") == "true":
             pytest.fail(f"{problem}; CI must start one (slurm/local_cluster.sh start, see .ci/run)")
