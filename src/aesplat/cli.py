@@ -390,6 +390,8 @@ def check_inputs(command: str, cfg, resuming: bool = False) -> None:
                 f"{run_dir} already holds a run ({held[0].relative_to(run_dir)}): resume it with --ckpt_path "
                 "last, give a new --trainer.default_root_dir, or --overwrite to delete it and start afresh"
             )
+    elif command == "validate":  # the split validation runs on, as fit's validation
+        find_shards(cfg.data.root, validation_split(cfg.data.root, cfg.data.get("validate_on_test", False)))
     else:
         find_shards(cfg.data.root, "test")
     weights = cfg.model.net.get("weights") if cfg.model.get("net") else None

@@ -110,6 +110,29 @@ def test_aesplat_fit_without_a_validation_split_is_refused_before_anything_is_wr
     assert not run.exists()
 
 
+def test_aesplat_validate_checks_the_split_it_validates_on(tmp_path):
+    from aesplat import cli
+
+    def validate(root, *more):
+        argv = ["validate", "-c", str(ROOT / "conf" / "smoke.yaml"), "--data.root", str(root),
+                "--trainer.default_root_dir", str(tmp_path / "run"), "--trainer.logger", "false",
+                "--trainer.enable_progress_bar", "false", *more]  # fmt: skip
+        return cli.main(argv)
+
+    generate_dataset(tmp_path / "src", scenes=2, test_scenes=1, val_scenes=0, **TINY)
+    convert_dataset(tmp_path / "src", tmp_path / "no_val", size=28, progress=False)
+    with pytest.raises(SystemExit) as verdict:
+        validate(tmp_path / "no_val", "--data.validate_on_test", "false")  # smoke.yaml asks for the test split
+    err = str(verdict.value)
+    assert err.startswith("aesplat validate: ") and "has no validation split" in err and "\n" not in err
+    assert not (tmp_path / "run").exists()
+    # validation scenes without test scenes: it validates (the test split is not its input)
+    generate_dataset(tmp_path / "src2", scenes=2, test_scenes=0, val_scenes=1, **TINY)
+    convert_dataset(tmp_path / "src2", tmp_path / "val_only", size=28, progress=False)
+    assert not (tmp_path / "val_only" / "test").exists() and (tmp_path / "val_only" / "validation").is_dir()
+    validate(tmp_path / "val_only")
+
+
 def test_to_shards_val_scenes_holds_out_training_scenes_deterministically(tmp_path):
     generate_dataset(tmp_path / "src", scenes=5, test_scenes=1, val_scenes=0, **TINY)
     whole = convert_dataset(tmp_path / "src", tmp_path / "whole", size=16, progress=False)
