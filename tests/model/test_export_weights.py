@@ -40,3 +40,24 @@ def test_only_fit_checkpoints_are_exported(tmp_path):
     torch.save({"blocks.0.norm1.weight": torch.ones(3)}, path)
     with pytest.raises(ValueError, match="not an `aesplat fit` checkpoint"):
         export_weights(path, tmp_path / "out.pt")
+
+
+def test_a_failed_export_keeps_the_earlier_file_and_leaves_no_partial_file(tmp_path, monkeypatch):
+    import errno
+
+    ckpt, out = tmp_path / "last.ckpt", tmp_path / "weights.pt"
+    _fake_fit_checkpoint(ckpt, build_model("tiny", sh_degree=2, camera_correlation=True))
+    out.write_bytes(b"the earlier weights")
+    real_save = torch.save
+
+    def full_disk(obj, f):
+        real_save({"half": torch.ones(10)}, f)  # some bytes reach the disk, then it is full
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(OSError, match="No space left") as err:
+        export_weights(ckpt, out)
+    assert err.value.filename == str(out)
+    assert out.read_bytes() == b"the earlier weights" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "last.ckpt", "weights.pt",
+    ]  # fmt: skip

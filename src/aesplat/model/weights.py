@@ -19,6 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from ..errors import MissingFileError, UserError
+from ..files import atomic_write
 from .encoder import PatchEncoder, resize_position_grid
 from .transformer import GeometryTransformer
 
@@ -323,7 +324,8 @@ def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> P
     """Write the model part of an ``aesplat fit`` checkpoint to ``out``: the model's tensors (fp32, the
     module's ``model.`` keys, nothing of the optimizer, metrics or loops) and the run's hyper-parameters, which
     ``model.net.weights`` loads like the checkpoint itself (about a third of its size). ``note`` is kept
-    beside them (e.g. the command that made it)."""
+    beside them (e.g. the command that made it). Written whole or not at all (an earlier ``out`` stays as it
+    was when the write fails)."""
     raw = _read_raw(checkpoint, "training")
     state = _state_of(raw, checkpoint)
     if not is_aesplat_checkpoint(state):
@@ -333,7 +335,7 @@ def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> P
     model_state = {k: v.detach().float().clone() for k, v in state.items() if k.startswith(AESPLAT_PREFIX)}
     hparams = raw.get("hyper_parameters", {}) if isinstance(raw, dict) else {}
     step = raw.get("global_step") if isinstance(raw, dict) else None
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"state_dict": model_state, "hyper_parameters": hparams, "global_step": step, "note": note}, out)
-    return out
+    payload = {"state_dict": model_state, "hyper_parameters": hparams, "global_step": step, "note": note}
+    return atomic_write(
+        out, lambda f: torch.save(payload, f)
+    )  # whole or not at all: a full disk keeps the old file
