@@ -149,3 +149,23 @@ def test_the_image_size_is_never_guessed(ckpt, tmp_path, capsys):
     assert main(["--ckpt", str(recorded), "--out", str(tmp_path / "out"), "--novel-frames", "2",
                  "--no-progress", *images]) == 0  # fmt: skip
     assert Image.open(tmp_path / "out" / "inputs" / "00_0.png").size == (42, 42)
+
+
+def test_a_later_run_removes_the_staging_folder_of_a_run_killed_outright(tmp_path, capsys):
+    from aesplat.predict import _staging_prefix, staged_output
+
+    out = tmp_path / "out"
+    gone = subprocess.run(["sh", "-c", "echo $$"], capture_output=True, text=True)  # a process that has ended
+    killed = tmp_path / f"{_staging_prefix(out, int(gone.stdout))}-abc123"  # what kill -9 leaves
+    running = tmp_path / f"{_staging_prefix(out, os.getppid())}-def456"  # a run still at work
+    elsewhere = tmp_path / f".out.partial-another-host-{gone.stdout.strip()}-0a1b2c"  # a shared file system
+    for folder in (killed, running, elsewhere):
+        (folder / "gaussians").mkdir(parents=True)
+    with staged_output(out, overwrite=False) as staging:
+        assert staging.name.startswith(_staging_prefix(out, os.getpid()) + "-")
+        (staging / "cameras.json").write_text("{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["out", running.name, elsewhere.name])
+    assert (out / "cameras.json").read_text() == "{}"
+    assert capsys.readouterr().out.strip() == (
+        f"aesplat predict: removed {killed}, the staging folder of an earlier run that was killed"
+    )

@@ -31,6 +31,7 @@ import math
 import os
 import re
 import shutil
+import socket
 import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -574,12 +575,45 @@ def check_output_dir(out: Path, overwrite: bool, inputs: Inputs = ()) -> None:
     check_writable(out.resolve().parent, f"--out {out}")  # the folder is renamed into place beside it
 
 
+def _staging_prefix(out: Path, pid: int | str = "") -> str:
+    """Name prefix of the staging folders of ``out`` made on this machine (by process ``pid``)."""
+    return f".{out.name}.partial-{socket.gethostname()}-{pid}"
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_staging(out: Path) -> list[Path]:
+    """The staging folders of ``out`` left by earlier runs on this machine whose process is gone (killed
+    outright, ``kill -9`` or a power loss: a stop signal removes its own); removed, and returned. Another
+    machine's (a shared file system) and running processes' are left alone."""
+    prefix = _staging_prefix(out)
+    stale = []
+    for path in out.parent.glob(".*.partial-*"):
+        pid = path.name[len(prefix) :].split("-", 1)[0] if path.name.startswith(prefix) else ""
+        if pid.isdigit() and path.is_dir() and not _running(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+            stale.append(path)
+    return stale
+
+
 @contextmanager
 def staged_output(out: Path, overwrite: bool):
     """Yield a temporary folder beside ``out``; when the block ends without error, it becomes ``out`` (an old
-    ``out``, allowed by ``overwrite``, is removed as a whole); on error it is deleted and ``out`` untouched."""
+    ``out``, allowed by ``overwrite``, is removed as a whole); on error it is deleted and ``out`` untouched.
+    Its name holds this machine's name and this process's id, so that a later run removes it when the
+    process was killed outright (:func:`remove_stale_staging`)."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    for path in remove_stale_staging(out):
+        print(f"aesplat predict: removed {path}, the staging folder of an earlier run that was killed")
+    staging = Path(tempfile.mkdtemp(prefix=_staging_prefix(out, os.getpid()) + "-", dir=out.parent))
     try:
         yield staging
     except BaseException:
