@@ -26,6 +26,7 @@ come without poses here. Every refusal is one line (see docs/troubleshooting.md)
 from __future__ import annotations
 
 import argparse
+import glob
 import json
 import math
 import os
@@ -596,8 +597,8 @@ def remove_stale_staging(out: Path) -> list[Path]:
     machine's (a shared file system) and running processes' are left alone."""
     prefix = _staging_prefix(out)
     stale = []
-    for path in out.parent.glob(".*.partial-*"):
-        pid = path.name[len(prefix) :].split("-", 1)[0] if path.name.startswith(prefix) else ""
+    for path in out.parent.glob(glob.escape(prefix) + "*"):
+        pid = path.name[len(prefix) :].split("-", 1)[0]
         if pid.isdigit() and path.is_dir() and not _running(int(pid)):
             shutil.rmtree(path, ignore_errors=True)
             stale.append(path)
