@@ -1,4 +1,5 @@
-"""Import a file of ``scripts/`` or ``benchmarks/`` (not packages) as a module, for the tests of those files."""
+"""Import a file of ``scripts/``, ``benchmarks/`` or ``data_prep/`` (not packages) as a module, for the tests
+of those files."""
 
 import importlib.util
 import sys
@@ -8,6 +9,7 @@ from types import ModuleType
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPTS = ROOT / "scripts"
 BENCHMARKS = ROOT / "benchmarks"
+DATA_PREP = ROOT / "data_prep"
 
 
 def load_script(name: str, folder: Path = SCRIPTS) -> ModuleType:

@@ -25,6 +25,8 @@ from aesplat.data.sources.colmap import colmap_camera, read_colmap, read_colmap_
 from aesplat.data.stream import read_tar
 from aesplat.data.synthetic_scenes import render_scene, sample_scene, scene_to_chunk_entry
 
+from ..script_loader import DATA_PREP, load_script
+
 REPO = Path(__file__).resolve().parents[2]
 H, W = 48, 64
 FRAMES = 8
@@ -526,16 +528,12 @@ def test_read_colmap_text_and_binary_agree(points, scene, chunk_reference, tmp_p
 
 
 def test_to_shards_script_dispatches_on_format(scene, chunk_reference, tmp_path, capsys):
-    import importlib.util
-
     s, _ = scene
     _, jpegs = chunk_reference
     c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().numpy()
     export_colmap(tmp_path / "src" / "room", jpegs, c2w, k, binary=False)
     (tmp_path / "src" / "empty").mkdir()
-    spec = importlib.util.spec_from_file_location("to_shards", REPO / "data_prep" / "to_shards.py")
-    to_shards = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(to_shards)
+    to_shards = load_script("to_shards", DATA_PREP)
     to_shards.main(["--format", "colmap", "--src", str(tmp_path / "src"), "--out", str(tmp_path / "out"),
                     "--size", "16", "--context-gap", "4", "--num-targets", "2"])  # fmt: skip
     captured = capsys.readouterr()

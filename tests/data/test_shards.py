@@ -3,7 +3,6 @@ careless or hostile input does (changed sources, a full disk, damaged manifests 
 
 from __future__ import annotations
 
-import importlib.util
 import io
 import json
 import os
@@ -21,6 +20,8 @@ from aesplat.data.stream import read_tar, sample_keys
 from aesplat.data.synthetic_scenes import render_scene, sample_scene
 from aesplat.errors import UserError
 from aesplat.geometry import project_points, unproject_depth
+
+from ..script_loader import DATA_PREP, load_script
 
 H, W = 48, 64  # landscape source: the centre crop keeps columns 8..56
 SIZE = 32
@@ -253,9 +254,7 @@ def test_command_line_scripts(tmp_path):
     summary = json.loads(done.stdout)
     assert summary["train"]["samples"] == 2 and summary["test"]["samples"] == 1
     assert json.loads((out / "manifest.json").read_text())["config"]["size"] == 14
-    spec = importlib.util.spec_from_file_location("to_shards", root / "to_shards.py")
-    to_shards = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(to_shards)
+    to_shards = load_script("to_shards", DATA_PREP)
     for damage, code in ((False, 0), (True, 1)):
         if damage:
             next((out / "test").glob("*.tar")).write_bytes(b"damaged")
@@ -355,14 +354,6 @@ def test_test_samples_carry_highlight_masks(tmp_path, scene):
 # -------------------------------------------------------------------------------------------- careless inputs
 
 
-def load_to_shards():
-    root = Path(__file__).resolve().parents[2] / "data_prep"
-    spec = importlib.util.spec_from_file_location("to_shards", root / "to_shards.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def one_line_exit(main, argv: list[str]) -> str:
     with pytest.raises(SystemExit) as verdict:
         main(argv)
@@ -411,9 +402,8 @@ def test_a_full_disk_leaves_no_temporary_file_and_is_one_line(tmp_path, syntheti
     assert "\n" not in str(err.value)
     assert not list(out.rglob("*.tmp")) and not (out / "manifest.json").exists()
     written.clear()
-    message = one_line_exit(
-        load_to_shards().main, ["--src", str(synthetic_src), "--out", str(out), "--size", "16"]
-    )
+    to_shards = load_script("to_shards", DATA_PREP).main
+    message = one_line_exit(to_shards, ["--src", str(synthetic_src), "--out", str(out), "--size", "16"])
     assert "No space left on device" in message and not list(out.rglob("*.tmp"))
     monkeypatch.setattr(tarfile.TarFile, "addfile", real)  # space again: the same command finishes the job
     convert_dataset(synthetic_src, out, size=16, progress=False)
@@ -421,7 +411,7 @@ def test_a_full_disk_leaves_no_temporary_file_and_is_one_line(tmp_path, syntheti
 
 
 def test_damaged_manifest_and_malformed_indices_are_one_line(tmp_path, synthetic_src):
-    to_shards = load_to_shards().main
+    to_shards = load_script("to_shards", DATA_PREP).main
     out = tmp_path / "out"
     convert_dataset(synthetic_src, out, size=16, progress=False)
     (out / "manifest.json").write_text('{"version": 2, "splits": {"train": ')

@@ -514,10 +514,9 @@ def test_old_sample_shards_still_evaluate_and_are_refused_for_training_with_the_
     assert f"python data_prep/to_shards.py --src {json.loads((old / 'manifest.json').read_text())['source']} " \
         f"--out {old} --size {SIZE}" in message  # fmt: skip
     new = [(sample_keys(b), b.target.images) for b in module(synthetic_shards).test_dataloader()]
-    assert [(sample_keys(b), b.target.images) for b in module(old).test_dataloader()].__len__() == len(new)
-    for (keys, images), (keys_old, images_old) in zip(
-        new, [(sample_keys(b), b.target.images) for b in module(old).test_dataloader()]
-    ):
+    old_batches = [(sample_keys(b), b.target.images) for b in module(old).test_dataloader()]
+    assert len(old_batches) == len(new)
+    for (keys, images), (keys_old, images_old) in zip(new, old_batches):
         assert keys == keys_old and torch.equal(images, images_old)  # the same test figures as before
     with pytest.raises(UserError, match="carry contexts of up to 2 views, not 3"):
         module(old, eval_num_context_views=3).test_dataloader()

@@ -19,6 +19,8 @@ from aesplat.train.evaluation import summarize
 from aesplat.train.module import context_view_counts
 from aesplat.types import BatchedExample, BatchedViews
 
+from .test_module import make_trainer
+
 SIZE = 28
 REPO = Path(__file__).resolve().parents[2]
 
@@ -71,18 +73,12 @@ def _module(aggregation: str, tmp_path) -> AESplatModule:
     )
 
 
-def _trainer(tmp_path, steps: int) -> L.Trainer:
-    return L.Trainer(accelerator="cpu", devices=1, max_steps=steps, logger=False, enable_progress_bar=False,
-                     enable_model_summary=False, enable_checkpointing=False, num_sanity_val_steps=0,
-                     limit_val_batches=0, log_every_n_steps=1, default_root_dir=str(tmp_path))  # fmt: skip
-
-
 def test_a_pool_module_trains_and_tests_on_batches_of_different_counts(tmp_path):
     L.seed_everything(0)
     counts = [2, 4, 3, 2, 5]
     module, data = _module("pool", tmp_path), HandMadeData(counts, declared=[2, 5])
     before = {n: p.detach().clone() for n, p in module.model.named_parameter_groups()["appearance"]}
-    trainer = _trainer(tmp_path, steps=len(counts))
+    trainer = make_trainer(len(counts), tmp_path, enable_checkpointing=False, log_every_n_steps=1)
     trainer.fit(module, datamodule=data)
     assert trainer.global_step == len(counts) and module.skipped_steps == 0
     assert trainer.callback_metrics["train/context_views"] == counts[-1]
@@ -103,7 +99,7 @@ def test_a_pool_module_trains_and_tests_on_batches_of_different_counts(tmp_path)
 def test_a_concat_module_refuses_a_data_count_it_cannot_take_before_any_step(tmp_path):
     module, data = _module("concat", tmp_path), HandMadeData([2, 3], declared=[2, 3])
     before = [p.detach().clone() for p in module.model.parameters()]
-    trainer = _trainer(tmp_path, steps=2)
+    trainer = make_trainer(2, tmp_path, enable_checkpointing=False, log_every_n_steps=1)
     with pytest.raises(UserError, match="view_aggregation: pool") as err:
         trainer.fit(module, datamodule=data)
     assert "\n" not in str(err.value)

@@ -29,17 +29,23 @@ SLURM_TASK = {
 
 
 class SignalDuringStep(Callback):
-    """Send the requeue signal to the main thread at the start of training batch ``at`` (mid-step)."""
+    """Send ``signum`` (the requeue signal unless given) to the main thread at the start of training batch
+    ``at`` (mid-step), and with ``again`` a second time at the end of that step; ``steps_after``: the global
+    steps of the batches that started after it."""
 
-    def __init__(self, at: int) -> None:
-        self.at = at
+    def __init__(self, at: int, signum: int = REQUEUE_SIGNAL, again: bool = False) -> None:
+        self.at, self.signum, self.again = at, signum, again
         self.steps_after: list[int] = []
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
         if batch_idx == self.at:
-            signal.pthread_kill(threading.main_thread().ident, REQUEUE_SIGNAL)
+            signal.pthread_kill(threading.main_thread().ident, self.signum)
         elif batch_idx > self.at:
             self.steps_after.append(trainer.global_step)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if batch_idx == self.at and self.again:
+            signal.pthread_kill(threading.main_thread().ident, self.signum)
 
 
 @pytest.fixture
@@ -88,22 +94,6 @@ def test_without_slurm_the_signal_is_not_held(smoke_shards, tmp_path, slurm_task
     assert REQUEUE_SIGNAL not in signal.pthread_sigmask(signal.SIG_BLOCK, set())
 
 
-class StopSignalDuringStep(Callback):
-    """Send ``signum`` to this process at the start of training batch ``at`` (mid-step); ``again``: send it
-    a second time at the end of that step."""
-
-    def __init__(self, at: int, signum: int = int(signal.SIGTERM), again: bool = False) -> None:
-        self.at, self.signum, self.again = at, signum, again
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        if batch_idx == self.at:
-            signal.pthread_kill(threading.main_thread().ident, self.signum)
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        if batch_idx == self.at and self.again:
-            signal.pthread_kill(threading.main_thread().ident, self.signum)
-
-
 def stop_run(smoke_shards, tmp_path, sender: Callback) -> tuple[L.Trainer, SignalsAtStepBoundary]:
     torch.manual_seed(0)
     signals = SignalsAtStepBoundary()
@@ -120,7 +110,7 @@ def test_a_stop_signal_finishes_the_step_saves_it_and_ends_the_fit(
     smoke_shards, tmp_path, signum, stop_signals_heeded
 ):
     before = signal.getsignal(signum)
-    trainer, signals = stop_run(smoke_shards, tmp_path, StopSignalDuringStep(at=1, signum=signum))
+    trainer, signals = stop_run(smoke_shards, tmp_path, SignalDuringStep(at=1, signum=signum))
     assert (signals.stop_signal, signals.stopped_at, trainer.global_step) == (signum, 2, 2)
     ckpt = torch.load(tmp_path / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
     assert ckpt["global_step"] == 2  # where it stopped, though the save interval is 99 steps
@@ -129,5 +119,5 @@ def test_a_stop_signal_finishes_the_step_saves_it_and_ends_the_fit(
 
 def test_a_second_stop_signal_stops_at_once_without_saving(smoke_shards, tmp_path):
     with pytest.raises(Stopped, match="stopped by a second SIGTERM, without saving"):
-        stop_run(smoke_shards, tmp_path, StopSignalDuringStep(at=1, again=True))
+        stop_run(smoke_shards, tmp_path, SignalDuringStep(at=1, signum=signal.SIGTERM, again=True))
     assert not (tmp_path / "checkpoints" / "last.ckpt").exists()

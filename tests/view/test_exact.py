@@ -21,7 +21,7 @@ def predicted(tmp_path_factory):
     loaded = load_checkpoint(ckpt)
     pixels = torch.stack([load_image(p, IMAGE_SIZE).image for p in images])
     pred = predict_scene(loaded.model, pixels)
-    options = {**loaded.render.get("options", {}), "background": loaded.background}
+    options = loaded.render_options()
     cameras = (pred.gaussians, pred.extrinsics, pred.intrinsics, IMAGE_SIZE, IMAGE_SIZE)
     expected = {degree: render_views(*cameras, {**options, "sh_degree": degree}) for degree in (0, SH_DEGREE)}
     return folder, ckpt, images, expected
