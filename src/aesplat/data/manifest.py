@@ -13,7 +13,6 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 import tarfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,19 +25,6 @@ LAYOUTS = ("scenes", "samples")
 CONVERT = "python data_prep/to_shards.py"
 
 log = logging.getLogger("aesplat.data")
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` whole or not at all: a temporary file beside it, synced, then renamed."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        with open(tmp, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def sha256(path: Path) -> str:

@@ -47,7 +47,8 @@ import numpy as np
 from PIL import Image
 
 from ..errors import UserError
-from .manifest import MANIFEST_VERSION, atomic_write_text, sha256
+from ..files import atomic_write, remove_partials
+from .manifest import MANIFEST_VERSION, sha256
 from .sampler import evaluation_context, evaluation_sample
 from .scene import Scene, SceneError, Skipped
 from .sources import Reader, SourceConfig, Unit, make_reader
@@ -450,7 +451,7 @@ def convert_unit(job: _Job) -> dict[str, Any]:
         shard.with_suffix(".json").unlink(missing_ok=True)
         return record
     record.update(sha256=sha256(shard), bytes=shard.stat().st_size)
-    atomic_write_text(shard.with_suffix(".json"), json.dumps(record, indent=1))
+    atomic_write(shard.with_suffix(".json"), lambda f: f.write(json.dumps(record, indent=1).encode()))
     return record
 
 
@@ -553,6 +554,8 @@ def convert_dataset(
 
     for leftover in out.glob("*/*.tmp"):  # what a killed conversion left behind
         leftover.unlink(missing_ok=True)
+    for folder in [out, *(d for d in out.glob("*") if d.is_dir())]:
+        remove_partials(folder)
     jobs, records = [], []
     held_set = frozenset(held)
     for split in splits:
@@ -591,7 +594,7 @@ def convert_dataset(
         ) from None
     manifest = _manifest(src, reader, cfg, splits, records, indexes, held, eval_index, val_index)
     try:
-        atomic_write_text(out / "manifest.json", json.dumps(manifest, indent=1))
+        atomic_write(out / "manifest.json", lambda f: f.write(json.dumps(manifest, indent=1).encode()))
     except OSError as err:
         raise UserError(
             f"cannot write {out / 'manifest.json'}: {err.strerror or err}; free space and rerun the "

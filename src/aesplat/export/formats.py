@@ -78,6 +78,8 @@ def export_prediction(
 
     scene: the folder already read (``read_prediction``), to save reading it again.
     """
+    if not formats:  # nothing asked: the prediction is not read back
+        return []
     folder = Path(folder)
     for name in formats:
         if name not in EXPORTS:

@@ -9,7 +9,6 @@ import csv
 import io
 import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from ..files import atomic_write
 from .metrics import OVERLAP_BUCKETS
 
 # psnr_highlight / psnr_rest: PSNR on the target pixels the shards mark as specular highlights and on the others
@@ -101,20 +101,10 @@ def write_results(
     writer.writeheader()
     for row in rows:
         writer.writerow({k: _cell(row.get(k)) for k in CSV_COLUMNS})
-    _write_whole(out_dir / "per_scene.csv", table.getvalue())
+    atomic_write(out_dir / "per_scene.csv", lambda f: f.write(table.getvalue().encode()))
     summary = {"cameras": cameras, **summarize(rows, lpips_unavailable)}
-    _write_whole(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    atomic_write(out_dir / "summary.json", lambda f: f.write((json.dumps(summary, indent=2) + "\n").encode()))
     return summary
-
-
-def _write_whole(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` so that a crash leaves the old file or the new one, never a part of it."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}")
-    with open(tmp, "w", newline="") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def _cell(value):
