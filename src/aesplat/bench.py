@@ -219,9 +219,7 @@ def select_gaussians(gaussians: Gaussians, setting: Setting) -> Gaussians:
     """Apply the Gaussian-count knobs of ``setting`` to one scene's Gaussians (B = 1)."""
     if setting.keep_fraction < 1.0:
         gaussians = keep_most_opaque(gaussians, setting.keep_fraction)
-    if setting.min_opacity > 0.0:
-        gaussians = drop_transparent(gaussians, setting.min_opacity)
-    return gaussians
+    return drop_transparent(gaussians, setting.min_opacity)
 
 
 @dataclass

@@ -471,7 +471,7 @@ def write_outputs(
         out_dir / "novel" / "trajectory.gif", save_all=True, append_images=frames[1:], duration=80, loop=0
     )
 
-    gaussians = pred.gaussians if min_opacity <= 0 else drop_transparent(pred.gaussians, min_opacity)
+    gaussians = drop_transparent(pred.gaussians, min_opacity)
     degree = min(gaussians.sh_degree, VIEWER_MAX_SH_DEGREE) if ply_sh_degree is None else ply_sh_degree
     write_ply(out_dir / "gaussians.ply", gaussians, sh_degree=degree)
     bar.update(1)

@@ -128,5 +128,6 @@ def test_drop_transparent():
     assert kept.num_gaussians == int((g.opacities >= 0.5).sum())
     assert bool((kept.opacities >= 0.5).all())
     assert drop_transparent(g, 2.0).num_gaussians == 1  # never empty
+    assert drop_transparent(g, 0.0) is g  # no threshold: every Gaussian, as given
     with pytest.raises(ValueError, match="one scene"):
         drop_transparent(random_gaussians(b=2), 0.1)

@@ -30,12 +30,15 @@ def keep_most_opaque(gaussians: Gaussians, fraction: float) -> Gaussians:
 def drop_transparent(gaussians: Gaussians, min_opacity: float) -> Gaussians:
     """Drop Gaussians with opacity below ``min_opacity`` (one scene, B = 1: counts differ between scenes).
 
-    At least one Gaussian (the most opaque) is always kept, so the result is a valid container.
+    At least one Gaussian (the most opaque) is always kept, so the result is a valid container. A threshold
+    of 0 or below keeps every Gaussian: they come back as given.
     """
     if gaussians.batch_size != 1:
         raise ValueError(
             f"drop_transparent works on one scene at a time, got a batch of {gaussians.batch_size}"
         )
+    if min_opacity <= 0:
+        return gaussians
     keep = gaussians.opacities[0] >= min_opacity  # [N]
     if not keep.any():
         keep = torch.zeros_like(keep)

@@ -28,9 +28,10 @@ import torch
 from PIL import Image
 
 from ..errors import UserError
+from ..export import drop_transparent
 from ..geometry import covariance_from_scale_rot, sh_dc_to_rgb
 from .camera import Viewpoint, viewpoint_of
-from .exact import render_viewpoint, visible_gaussians
+from .exact import render_viewpoint
 from .scene import ViewScene
 
 MODES = ("fast", "exact")
@@ -162,7 +163,7 @@ class ClientSession:
         return max(float((hi - lo).norm()), 1e-3)
 
     def _add_splats(self) -> None:
-        g = visible_gaussians(self.scene.gaussians, self.min_opacity)
+        g = drop_transparent(self.scene.gaussians, self.min_opacity)
         rgb = sh_dc_to_rgb(g.sh[0, :, 0]).clamp(0, 1)  # base colour: what the fast mode shows
         cov = covariance_from_scale_rot(g.scales[0], g.quats[0])  # [N, 3, 3]
         self.splats = self.client.scene.add_gaussian_splats(

@@ -8,14 +8,8 @@ from torch import Tensor
 
 from ..export import drop_transparent
 from ..render import render
-from ..types import Gaussians
 from .camera import Viewpoint
 from .scene import ViewScene
-
-
-def visible_gaussians(gaussians: Gaussians, min_opacity: float) -> Gaussians:
-    """The Gaussians at or above ``min_opacity`` (all of them for 0)."""
-    return gaussians if min_opacity <= 0 else drop_transparent(gaussians, min_opacity)
 
 
 @torch.no_grad()
@@ -37,7 +31,7 @@ def render_viewpoint(
     h, w = viewpoint.size(height)
     ext = viewpoint.extrinsics().to(device)[None, None]  # [1, 1, 4, 4]
     intr = viewpoint.intrinsics(height).to(device)[None, None]  # [1, 1, 3, 3]
-    gaussians = visible_gaussians(scene.gaussians, min_opacity).to(device)
+    gaussians = drop_transparent(scene.gaussians, min_opacity).to(device)
     out = render(gaussians, ext, intr, h, w, background=scene.background.to(device), sh_degree=sh_degree,
                  backend=backend, **scene.render_options)  # fmt: skip
     return out.color[0, 0].clamp(0, 1).cpu()
