@@ -150,8 +150,8 @@ def test_a_fit_stopped_by_sigterm_saves_where_it_stopped_and_exits_143(shards, c
     run = tmp_path / "run"
     overlay = tmp_path / "stop.yaml"
     overlay.write_text(
-        "trainer:\n  callbacks:\n    - class_path: tests.train.test_signals.StopSignalDuringStep\n"
-        "      init_args:\n        at: 1\n"
+        "trainer:\n  callbacks:\n    - class_path: tests.train.test_signals.SignalDuringStep\n"
+        f"      init_args:\n        at: 1\n        signum: {int(signal.SIGTERM)}\n"
     )
     code, err = aesplat(capsys, "fit", *common(shards, run), "-c", str(overlay), "--trainer.max_steps", "50",
                         "--last_checkpoint.every_n_train_steps", "40")  # fmt: skip
