@@ -40,10 +40,8 @@ CLASS_KEYS = frozenset({"class_path", "init_args", "dict_kwargs", "_class_path",
 LIGHTNING_INSTANTIATOR = "lightning.pytorch.cli.instantiate_module"
 DATA_RECORD = "aesplat_data"  # a checkpoint's record of its run's data settings (image_size)
 
+
 # Where `--ckpt_path last` looks in a run folder, and the names a resumable checkpoint has there.
-CHECKPOINT_GLOBS = ("checkpoints/*.ckpt", "hpc_ckpt_*.ckpt")
-
-
 def read_checkpoint(path: str | Path, flag: str = "--ckpt_path") -> dict:
     """A Lightning checkpoint of ``aesplat fit``, loaded safely on the CPU; UserError (one line) otherwise."""
     path = Path(path)
@@ -194,10 +192,10 @@ class Candidate:
 def run_checkpoints(run_dir: str | Path, monitor: str | None = None) -> list[Candidate]:
     """Every checkpoint of ``run_dir`` (``checkpoints/*.ckpt``, SLURM's ``hpc_ckpt_*.ckpt``), each read
     safely: its global step, the ``monitor`` score it was saved with, or why it does not load."""
-    run_dir = Path(run_dir)
-    paths = sorted({p for pattern in CHECKPOINT_GLOBS for p in run_dir.glob(pattern) if p.is_file()})
+    from .train.run_dir import run_checkpoint_files  # the train package imports Lightning: only when asked
+
     found = []
-    for path in paths:
+    for path in (p for p in run_checkpoint_files(run_dir) if p.is_file()):
         try:
             ckpt = read_checkpoint(path, "checkpoint")
         except UserError as err:
