@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..geometry import invert_pose, matrix_to_quat
+from ..geometry import denormalize_intrinsics, invert_pose, matrix_to_quat
 from .prediction import PredictedScene
 
 
@@ -30,8 +30,8 @@ def colmap_camera_lines(scene: PredictedScene) -> list[str]:
     """``cameras.txt`` data lines: camera i + 1 is image i's PINHOLE camera."""
     w, h = scene.width, scene.height
     lines = []
-    for i, k in enumerate(scene.intrinsics.double()):
-        params = (k[0, 0] * w, k[1, 1] * h, k[0, 2] * w, k[1, 2] * h)
+    for i, k in enumerate(denormalize_intrinsics(scene.intrinsics.double(), h, w)):
+        params = (k[0, 0], k[1, 1], k[0, 2], k[1, 2])
         lines.append(f"{i + 1} PINHOLE {w} {h} " + " ".join(_num(p) for p in params))
     return lines
 

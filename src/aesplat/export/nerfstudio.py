@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry import denormalize_intrinsics
 from .prediction import PredictedScene
 
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z; its own inverse
@@ -28,13 +29,14 @@ def transforms_json(scene: PredictedScene, names: list[str]) -> dict:
     """The ``transforms.json`` content for ``scene`` with images ``images/NAME``."""
     w, h = scene.width, scene.height
     frames = []
+    pixels = denormalize_intrinsics(scene.intrinsics.double(), h, w).numpy()
     for i, name in enumerate(names):
         c2w = scene.extrinsics[i].double().numpy() @ CV_TO_GL
-        k = scene.intrinsics[i].double().numpy()
+        k = pixels[i]
         frames.append({
             "file_path": f"images/{name}",
             "transform_matrix": c2w.tolist(),
-            "fl_x": k[0, 0] * w, "fl_y": k[1, 1] * h, "cx": k[0, 2] * w, "cy": k[1, 2] * h, "w": w, "h": h,
+            "fl_x": k[0, 0], "fl_y": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "w": w, "h": h,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
         })  # fmt: skip
     return {"camera_model": "OPENCV", "ply_file_path": "sparse_pc.ply", "frames": frames}
