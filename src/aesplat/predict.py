@@ -243,11 +243,15 @@ def _to_rgb_float(
     return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
 
 
+def to_uint8(image: Tensor) -> np.ndarray:
+    """A [3, H, W] float image in [0, 1] as uint8 [H, W, 3] (rounded), on the CPU."""
+    return (image.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
+
+
 def save_image(image: Tensor, path: Path) -> None:
     """Write a [3, H, W] float image in [0, 1] as PNG."""
-    array = (image.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(array).save(path)
+    Image.fromarray(to_uint8(image)).save(path)
 
 
 def colorize_depth(depth: Tensor, cmap: str = "turbo") -> np.ndarray:

@@ -30,6 +30,7 @@ from PIL import Image
 from ..errors import UserError
 from ..export import drop_transparent
 from ..geometry import covariance_from_scale_rot, sh_dc_to_rgb
+from ..predict import to_uint8
 from .camera import Viewpoint, viewpoint_of
 from .exact import render_viewpoint
 from .scene import ViewScene
@@ -56,11 +57,6 @@ def png_bytes(image: np.ndarray) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(image).save(buf, format="PNG")
     return buf.getvalue()
-
-
-def to_uint8(color: torch.Tensor) -> np.ndarray:
-    """[3, H, W] in [0, 1] -> uint8 [H, W, 3]."""
-    return (color.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
 
 
 @dataclass(frozen=True)

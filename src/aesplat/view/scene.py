@@ -60,11 +60,6 @@ class ViewScene:
         return self.gaussians.sh_degree
 
 
-def _uint8(image: Tensor) -> np.ndarray:
-    """[3, H, W] float in [0, 1] -> uint8 [H, W, 3], rounded as ``aesplat predict`` saves images."""
-    return (image.detach().clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).cpu().numpy()
-
-
 def _read_rgb(path: Path) -> np.ndarray:
     with Image.open(path) as image:
         return np.asarray(image.convert("RGB"))
@@ -102,7 +97,7 @@ def scene_from_checkpoint(
     photo's shape for every view, ``size`` its shorter side, ``crop`` as ``--crop``), in memory: nothing is
     written."""
     from ..commands import resolve_device
-    from ..predict import interpolate_cameras, predict_photos
+    from ..predict import interpolate_cameras, predict_photos, to_uint8
 
     if len(images) < 2:
         raise UserError("give at least two images of the same scene after --ckpt")
@@ -112,7 +107,7 @@ def scene_from_checkpoint(
     ext, intr = pred.extrinsics.cpu(), pred.intrinsics.cpu()
     height, width = shape
     cameras = [
-        ViewCamera(Path(p).stem, _uint8(pixels[i]), ext[i], intr[i], width, height)
+        ViewCamera(Path(p).stem, to_uint8(pixels[i]), ext[i], intr[i], width, height)
         for i, p in enumerate(images)
     ]
     path_ext, path_int = interpolate_cameras(ext, intr, path_frames)
