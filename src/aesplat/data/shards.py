@@ -334,10 +334,7 @@ def _finished(job: _Job) -> dict[str, Any] | None:
 def _evaluation_entry(scene: Scene, job: _Job) -> EvaluationEntry:
     """The scene's evaluation sample: its index entry, or the deterministic sample of a scene without one."""
     cfg = job.cfg
-    if job.index is None:
-        if len(scene) < cfg.context_gap + 1:
-            raise SceneError("too_few_frames", f"{scene.key}: {len(scene)} frames, a context gap of "
-                             f"{cfg.context_gap} (--context-gap) needs {cfg.context_gap + 1}")  # fmt: skip
+    if job.index is None:  # _check made sure the scene spans the context gap
         context, target = evaluation_sample(len(scene), cfg.context_gap, cfg.num_targets)
         return EvaluationEntry(context, target, None)
     entry = job.index.get(scene.key)
@@ -356,6 +353,8 @@ def _check(scene: Scene, job: _Job) -> None:
     if not job.evaluation:  # gaps count the frames kept (every frame_stride-th)
         need, why = cfg.min_gap * cfg.frame_stride + 1, f"the smallest context gap ({cfg.min_gap}, --min-gap)"
         reason = "shorter_than_min_gap"
+    elif job.index is None and cfg.context_gap + 1 > need:  # the deterministic evaluation sample's span
+        need, why = cfg.context_gap + 1, f"a context gap of {cfg.context_gap} (--context-gap)"
     check_scene(
         scene,
         max_fov_deg=cfg.max_fov_deg,
