@@ -37,16 +37,6 @@ from aesplat.train.curves import read_curve
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_PASSES = 400_000 * 10 / (67_000 * 8)  # the paper's steps x batch over RealEstate10K's scenes x 8 samples
-SEED_TAG = "@data-seed-"  # learning_curves.py's name of a run's seeded copy
-
-
-def curves_module():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("learning_curves", ROOT / "benchmarks" / "learning_curves.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def demo_settings(config: Path) -> dict:
@@ -78,8 +68,9 @@ def main(argv: list[str] | None = None) -> int:
 
     settings = demo_settings(a.config)
     load_start = round(os.getloadavg()[0], 2)
-    curves = curves_module()
-    curves.main([
+    import learning_curves  # beside this script (its folder is on sys.path)
+
+    learning_curves.main([
         "--config", str(a.config), "--data", str(a.data), "--size", str(settings["image_size"]),
         "--steps", str(a.steps), "--every", str(a.every), "--runs", "fresh", "fixed-pool",
         "--define", "fresh=", "--define", f"fixed-pool=--data.fixed_pool {a.pool}",
@@ -93,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     for seed in a.seeds:
         row = {"seed": seed}
         for arm in ("fresh", "fixed-pool"):
-            last = read_curve(a.out / f"{arm}{SEED_TAG}{seed}" / "curve.csv")[-1]
+            last = read_curve(a.out / f"{arm}{learning_curves.SEED_TAG}{seed}" / "curve.csv")[-1]
             if int(last["step"]) != a.steps:
                 raise SystemExit(
                     f"learning_effect: {arm}, seed {seed} stopped at step {last['step']}; run again"
