@@ -283,8 +283,9 @@ def main(argv: list[str] | None = None) -> int:
         f"{a.workers} workers, batch {a.batch_size}, {a.batches} timed batches.",
         "",
     ]
-    (a.out / "bench_data.md").write_text("\n".join(header + table(result)) + "\n")
-    print("\n".join(header + table(result)))
+    report = "\n".join(header + table(result))
+    (a.out / "bench_data.md").write_text(report + "\n")
+    print(report)
     return 0
 
 

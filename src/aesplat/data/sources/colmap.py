@@ -32,7 +32,6 @@ COLMAP_MODELS = {
     9: ("RADIAL_FISHEYE", ("f", "cx", "cy", "k1", "k2")),
     10: ("THIN_PRISM_FISHEYE", ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "sx1", "sy1")),
 }
-COLMAP_MODEL_IDS = {name: i for i, (name, _) in COLMAP_MODELS.items()}
 
 ColmapCameras = dict[int, tuple[str, int, int, list[float]]]  # id -> (model, width, height, params)
 ColmapImages = dict[int, tuple[np.ndarray, np.ndarray, int, str]]  # id -> (qvec wxyz, tvec, camera id, name)
