@@ -49,7 +49,6 @@ import csv
 import importlib.metadata
 import json
 import math
-import os
 import resource
 import statistics
 import sys
@@ -64,6 +63,7 @@ import yaml
 from lightning.pytorch import Callback
 
 from aesplat.data import DataModule, convert_dataset, generate_dataset
+from aesplat.files import atomic_write
 from aesplat.threads import apply_thread_policy
 from aesplat.train import AESplatModule
 from aesplat.train.loss import LpipsWeightsMissing
@@ -403,8 +403,8 @@ def main() -> None:
     print(f"| samples / s | {batch / step:.1f} |")
     print(f"| peak memory | {peak} |\n")
     print("| stage | median ms | share of the step |\n| --- | ---: | ---: |")
-    for stage in STAGES:
-        ms = statistics.median(s.get(stage, 0.0) for s in per_step) * 1e3
+    stages = {s: statistics.median(x.get(s, 0.0) for x in per_step) * 1e3 for s in STAGES}
+    for stage, ms in stages.items():
         print(f"| {stage} | {ms:.1f} | {ms / (step * 1e3):.0%} |")
     total = statistics.median(sum(s.values()) for s in per_step) * 1e3
     print(f"| (sum of stages) | {total:.1f} | {total / (step * 1e3):.0%} |")
@@ -412,17 +412,13 @@ def main() -> None:
     first, last = records[0]["loss"], records[-1]["loss"]
     print(f"\nloss: step 0 {first:.5f}, step {len(records) - 1} {last:.5f}; {skipped} skipped steps")
     if args.json is not None:
-        stages = {s: statistics.median(x.get(s, 0.0) for x in per_step) * 1e3 for s in STAGES}
         kind = "cuda allocated" if device.type == "cuda" else "process RSS during the fit"
         figures = {"config": args.config, "overrides": args.overrides, "device": str(device),
                    "threads": threads, "precision": precision, "image_size": size, "batch_size": batch,
                    "steps": args.steps, "warmup": args.warmup, "seconds_per_step": step,
                    "samples_per_s": batch / step, "peak_memory_gib": peak_gib, "peak_memory_kind": kind,
                    "rss_before_fit_gib": start_rss, "skipped_steps": skipped, "stages_ms": stages}  # fmt: skip
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.json.with_name(f".{args.json.name}.tmp")
-        tmp.write_text(json.dumps(figures, indent=1) + "\n")
-        os.replace(tmp, args.json)
+        atomic_write(args.json, lambda f: f.write((json.dumps(figures, indent=1) + "\n").encode()))
     if args.compare is not None:
         ours = {r["step"]: r["loss"] for r in records}
         print(f"\n| against {args.compare} | value |\n| --- | ---: |")

@@ -60,6 +60,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "scripts"))
 from figures import provenance, write_whole  # noqa: E402
 
+from aesplat.files import atomic_write  # noqa: E402
 from aesplat.stats import t_interval  # noqa: E402
 
 MODELS = ("pool", "concat", "concat_fresh", "pool_2")
@@ -161,10 +162,7 @@ def fresh_head_weights(work: Path, settings: Settings) -> Path:
         if len(kept) == len(raw["state_dict"]):
             raise SystemExit(f"{weights} holds no appearance tensors (model.appearance.*)")
         note = f"{raw.get('note', '')}; appearance tensors removed by benchmarks/context_views.py"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.tmp")
-        torch.save({**raw, "state_dict": kept, "note": note}, tmp)
-        os.replace(tmp, out)
+        atomic_write(out, lambda f: torch.save({**raw, "state_dict": kept, "note": note}, f))
     return out
 
 
