@@ -37,8 +37,12 @@ def reference_render(
     background: Tensor | None = None,  # [B, 3]
     sh_degree: int | None = None,
     near: float = 0.01,
+    antialiased: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """colour [B, V, 3, H, W], depth [B, V, 1, H, W], alpha [B, V, 1, H, W] in float64."""
+    """colour [B, V, 3, H, W], depth [B, V, 1, H, W], alpha [B, V, 1, H, W] in float64.
+
+    ``antialiased``: gsplat's mode of that name, the opacity times sqrt(det Σ₂ / det(Σ₂ + 0.3 I)) of the
+    projected covariance Σ₂ (skipped, as gsplat skips it, when that leaves it below 1/255)."""
     b, n = g.means.shape[:2]
     v = extrinsics.shape[1]
     degree = g.sh_degree if sh_degree is None else sh_degree
@@ -79,8 +83,14 @@ def reference_render(
                         torch.stack([torch.zeros_like(z), fy / z, -fy * ty / z**2]),
                     ]
                 )
-                cov2 = jac @ cov_c @ jac.T + 0.3 * torch.eye(2, dtype=torch.float64)
+                cov2 = jac @ cov_c @ jac.T
+                det_unblurred = torch.linalg.det(cov2)
+                cov2 = cov2 + 0.3 * torch.eye(2, dtype=torch.float64)
                 det = cov2[0, 0] * cov2[1, 1] - cov2[0, 1] ** 2
+                if antialiased:
+                    o = o * torch.sqrt(det_unblurred / det)
+                    if o < 1 / 255:
+                        continue
                 a, bb, c = cov2[1, 1] / det, -cov2[0, 1] / det, cov2[0, 0] / det
                 u, vv = fx * x / z + cx, fy * y / z + cy
                 d = g.means[bi, i] - campos

@@ -99,15 +99,19 @@ def test_gsplat_backend_without_gsplat_says_how_to_get_it():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not gsplat_available(), reason="needs CUDA and gsplat")
-def test_gsplat_matches_torch_backend_on_gpu():
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])
+def test_gsplat_matches_torch_backend_on_gpu(mode):
     g = random_scene(200, b=2, sh_degree=2, seed=22, dtype=torch.float32, spread=0.8)
-    g = Gaussians(g.means, g.quats, g.scales, g.opacities.clamp_max(0.9), g.sh)  # gsplat caps alpha at 0.999
+    shrink = torch.logspace(-2, 0, 200)[None, :, None]  # some below a pixel, where the two modes differ
+    g = Gaussians(
+        g.means, g.quats, g.scales * shrink, g.opacities.clamp_max(0.9), g.sh
+    )  # gsplat: alpha <= 0.999
     ext, intr = cameras(2, 2, dtype=torch.float32)
     dev = torch.device("cuda")
     leaves = [t.to(dev).requires_grad_() for t in (g.means, g.quats, g.scales, g.opacities, g.sh, ext, intr)]
     outs, grads = [], []
     for backend in ("torch", "gsplat"):
-        out = render(Gaussians(*leaves[:5]), leaves[5], leaves[6], 64, 80, backend=backend)
+        out = render(Gaussians(*leaves[:5]), leaves[5], leaves[6], 64, 80, backend=backend, rasterize_mode=mode)
         outs.append(out)
         grads.append(torch.autograd.grad(out.color.sum() + out.depth.sum() + out.alpha.sum(), leaves))
     for a, b in zip(

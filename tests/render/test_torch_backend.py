@@ -42,6 +42,10 @@ def _reference_fn(g, ext, intr, bg):
     return reference_render(g, ext, intr, H, W, bg)
 
 
+def _antialiased_reference_fn(g, ext, intr, bg):
+    return reference_render(g, ext, intr, H, W, bg, antialiased=True)
+
+
 @pytest.mark.parametrize(
     ("seed", "options"),
     [(1, {"tile_size": 8, "chunk": 4}), (2, {"tile_size": 16, "chunk": 32}), (3, {"tile_size": 4, "chunk": 7})],
@@ -71,6 +75,84 @@ def test_matches_reference_float64_exactly():
     out, grad = _outputs_and_grads(_torch_fn(chunk=5), _leaves(g, ext, intr, bg, torch.float64), weights)
     for a, b in zip(out + grad, ref_out + ref_grad):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
+
+
+def _small_scene(seed: int, b: int = 2) -> Gaussians:
+    """A random scene whose Gaussians are partly below a pixel, where the antialiasing filter matters."""
+    g = random_scene(40, b=b, sh_degree=2, seed=seed)
+    shrink = torch.logspace(-3, 0, 40, dtype=torch.float64)[None, :, None]
+    return Gaussians(g.means, g.quats, g.scales * shrink, g.opacities, g.sh)
+
+
+def test_antialiased_matches_reference_float32():
+    g = _small_scene(31)
+    ext, intr = cameras(2, 2)
+    bg = torch.rand(2, 3, dtype=torch.float64)
+    weights = [torch.rand(2, 2, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
+    ref_out, ref_grad = _outputs_and_grads(
+        _antialiased_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights
+    )
+    out, grad = _outputs_and_grads(
+        _torch_fn(rasterize_mode="antialiased", chunk=4), _leaves(g, ext, intr, bg, torch.float32), weights
+    )
+    classic, _ = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
+    assert (classic[2] - ref_out[2]).abs().max() > 0.1  # the filter changes this scene
+    for name, a, b in zip(("color", "depth", "alpha"), out, ref_out):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5, msg=name)
+    names = ("means", "quats", "scales", "opacities", "sh", "extrinsics", "intrinsics", "background")
+    for name, a, b in zip(names, grad, ref_grad):
+        assert torch.isfinite(a).all(), name
+        assert (a - b).abs().max() <= 1e-4 * b.abs().max(), f"{name}: {(a - b).abs().max()} vs {b.abs().max()}"
+
+
+def test_antialiased_matches_reference_float64_exactly():
+    g = _small_scene(32, b=1)
+    ext, intr = cameras(1, 3)
+    bg = torch.rand(1, 3, dtype=torch.float64)
+    weights = [torch.rand(1, 3, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
+    ref = _outputs_and_grads(_antialiased_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
+    out = _outputs_and_grads(
+        _torch_fn(rasterize_mode="antialiased", chunk=5), _leaves(g, ext, intr, bg, torch.float64), weights
+    )
+    for a, b in zip(out[0] + out[1], ref[0] + ref[1]):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
+
+
+def test_gradcheck_float64_antialiased():
+    g = random_scene(4, sh_degree=1, seed=33, spread=0.3)
+    g = Gaussians(g.means, g.quats, g.scales * 0.2, g.opacities.clamp(0.3, 0.8), g.sh)
+    ext, intr = cameras(1, 2)
+
+    def fn(means, quats, scales, opacities, sh, extrinsics, intrinsics):
+        out = render(Gaussians(means, quats, scales, opacities, sh), extrinsics, intrinsics, 7, 9,
+                     backend="torch", tile_size=4, chunk=2, rasterize_mode="antialiased")  # fmt: skip
+        return out.color, out.depth, out.alpha
+
+    inputs = [t.clone().requires_grad_() for t in (g.means, g.quats, g.scales, g.opacities, g.sh, ext, intr)]
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
+
+
+@pytest.mark.parametrize("scale", [1e-5, 1e-3, 0.01, 0.05])
+def test_antialiased_keeps_a_gaussians_coverage_whatever_its_size(scale):
+    """A facing Gaussian of projected variance v px²: classic rendering shows it with alpha o at its centre
+    however small it is (the 0.3 px² low-pass alone gives it a pixel's footprint); antialiased rendering scales
+    that by v / (v + 0.3), so its summed alpha stays o·2π·v, its own, as long as nothing is clipped."""
+    size, z, opacity = 41, 2.0, 0.5
+    g = _facing_gaussian(opacity, scale, z)
+    ext = torch.eye(4)[None, None]
+    intr = intrinsics_from_fov(torch.tensor([[math.radians(60.0)]]))
+    var = (intr[0, 0, 0, 0].item() * size * scale / z) ** 2
+    centre = size // 2
+    classic = render(g, ext, intr, size, size, backend="torch").alpha[0, 0, 0]
+    aa = render(g, ext, intr, size, size, backend="torch", rasterize_mode="antialiased").alpha[0, 0, 0]
+    assert classic[centre, centre] == pytest.approx(opacity, rel=1e-5)
+    faded = opacity * var / (var + 0.3)
+    if faded < 1 / 255:
+        assert (aa == 0).all()  # faded below the alpha threshold: culled, as gsplat culls it
+        return
+    assert aa[centre, centre] == pytest.approx(faded, rel=1e-4)
+    if var > 0.5:  # wide enough that pixel sums approximate the integral
+        assert float(aa.sum()) == pytest.approx(opacity * 2 * math.pi * var, rel=0.02)
 
 
 def test_gradcheck_float64_gaussians_and_cameras():

@@ -98,7 +98,7 @@ def render_gsplat(
         colors=g.sh[:, :, : num_sh_coeffs(sh_degree)], sh_degree=sh_degree, viewmats=viewmats, Ks=k_ref,
         width=width, height=height, near_plane=settings.near, far_plane=settings.far, eps2d=settings.eps2d,
         tile_size=settings.tile_size, backgrounds=background.float()[:, None].expand(b, v, 3).contiguous(),
-        render_mode="RGB+ED", rasterize_mode="classic", packed=False,
+        render_mode="RGB+ED", rasterize_mode=settings.rasterize_mode, packed=False,
     )  # fmt: skip
     rgbd = colors.permute(0, 1, 4, 2, 3).contiguous()  # [B, V, 4, H, W]: colour and expected depth
     alpha = alphas.permute(0, 1, 4, 2, 3).contiguous()  # [B, V, 1, H, W]

@@ -73,8 +73,9 @@ def _ewa(
     height: int,
     width: int,
     eps2d: float,
-) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor], Tensor]:
-    """Pixel means [M, 2], low-passed 2D covariance entries (a, b, c) [M] each, and camera z [M].
+) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor], Tensor, Tensor]:
+    """Pixel means [M, 2], low-passed 2D covariance entries (a, b, c) [M] each, camera z [M] and the
+    determinant of the 2D covariance before the low-pass [M] (from the unblurred entries: exact for tiny ones).
 
     Callers guarantee z > near > 0 for every pair. Small per-pair matrix products are written as broadcast
     multiply-and-sum: batched 3x3 matmuls are slow on the CPU.
@@ -97,7 +98,7 @@ def _ewa(
     jr1 = (fy * rz)[:, None] * r[:, 1] - (fy * ty * rz * rz)[:, None] * r[:, 2]
     ca, cb, cc = shape(gid, torch.stack([jr0, jr1], dim=1))
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
-    return means2d, (ca + eps2d, cb, cc + eps2d), z
+    return means2d, (ca + eps2d, cb, cc + eps2d), z, ca * cc - cb * cb
 
 
 def _radii(ca: Tensor, cc: Tensor, opac: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
@@ -123,10 +124,13 @@ def project_gaussians(
     eps2d: float = 0.3,
     covariances: Tensor | None = None,  # [B, N, 3, 3] world covariances replacing scales / quats
     colors: Tensor | None = None,  # [B, N, 3] fixed colours replacing the SH
+    antialiased: bool = False,
 ) -> tuple[Projected, CullCounts]:
     """Cull and project every Gaussian into every camera of its batch element.
 
     ``sh_degree`` is the number of SH bands evaluated (0 evaluates only the DC term, no basis at all).
+    ``antialiased``: gsplat's "antialiased" mode, each pair's opacity scaled by :func:`compensation` (the
+    projected opacities carry it; a pair it fades below 1/255 is culled with the footprint, as gsplat does).
     ``covariances`` and ``colors`` serve pre-transformed Gaussians (the tests' emulation of gsplat uses them).
     """
     b, n = gaussians.means.shape[:2]
@@ -167,12 +171,15 @@ def project_gaussians(
     # (0 * inf = NaN); otherwise the survivors are projected again on their own.
     ewa = _ewa(flat_means, shape, cameras, cam, gid, height, width, eps2d)
     with torch.no_grad():
-        m2, (ca, cb, cc), _ = ewa
+        m2, (ca, cb, cc), _, det_raw = ewa
         det = ca * cc - cb * cb
         opac = gaussians.opacities.reshape(b * n).index_select(0, gid)
         ok = torch.isfinite(ca) & torch.isfinite(cb) & torch.isfinite(cc) & torch.isfinite(m2).all(-1)
         all_finite = bool(ok.all())
         ok &= det > 0
+        if antialiased:
+            opac = opac * compensation(det_raw, torch.where(ok, det, torch.ones_like(det)))
+            ok &= opac >= ALPHA_MIN
         rad_x, rad_y = _radii(ca, cc, opac, ok)
         on_screen = (m2[:, 0] + rad_x > 0) & (m2[:, 0] - rad_x < width)
         on_screen &= (m2[:, 1] + rad_y > 0) & (m2[:, 1] - rad_y < height)
@@ -182,12 +189,17 @@ def project_gaussians(
 
     cam_v, gid_v = cam.index_select(0, sel), gid.index_select(0, sel)
     if all_finite:
-        means2d, depth = ewa[0].index_select(0, sel), ewa[2].index_select(0, sel)
+        means2d, depth, det_raw = (ewa[i].index_select(0, sel) for i in (0, 2, 3))
         ca, cb, cc = (t.index_select(0, sel) for t in ewa[1])
     else:
-        means2d, (ca, cb, cc), depth = _ewa(flat_means, shape, cameras, cam_v, gid_v, height, width, eps2d)
+        means2d, (ca, cb, cc), depth, det_raw = _ewa(
+            flat_means, shape, cameras, cam_v, gid_v, height, width, eps2d
+        )
     det = ca * cc - cb * cb  # > 0 for every survivor
     conics = torch.stack([cc / det, -cb / det, ca / det], dim=-1)
+    opacities = gaussians.opacities.reshape(b * n).index_select(0, gid_v)
+    if antialiased:
+        opacities = opacities * compensation(det_raw, det)
 
     # Colours: only the SH bands in use; degree 0 never touches directions.
     ncoef = num_sh_coeffs(sh_degree)
@@ -209,10 +221,19 @@ def project_gaussians(
         conics=conics,
         radii=torch.stack([rad_x, rad_y], dim=-1).index_select(0, sel),
         depths=depth,
-        opacities=gaussians.opacities.reshape(b * n).index_select(0, gid_v),
+        opacities=opacities,
         colors=colors,
     )
     return projected, CullCounts(total, transparent, depth_culled, footprint)
+
+
+def compensation(det_raw: Tensor, det_blurred: Tensor) -> Tensor:
+    """The antialiasing filter's opacity factor sqrt(det Σ / det(Σ + eps2d·I)) [M], in [0, 1).
+
+    ``det_blurred`` must be positive. The ratio is floored at 1e-12 (a factor of 1e-6, where gsplat's is 0) so
+    that a flat Gaussian (det Σ = 0) has a finite gradient; its opacity is then far below 1/255 either way.
+    """
+    return torch.sqrt((det_raw / det_blurred).clamp_min(1e-12))
 
 
 def active_sh_degree(sh: Tensor, requested: int, tol: float = 0.0) -> int:

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+RASTERIZE_MODES = ("classic", "antialiased")
+
 
 @dataclass(frozen=True)
 class RenderSettings:
@@ -23,6 +25,9 @@ class RenderSettings:
                   step takes more of each list (chunk x 2^k): few long lists cost few steps (0: never)
     near, far     depth cull planes (camera z)
     eps2d         low-pass added to the 2D covariance
+    rasterize_mode  "classic" (the low-pass widens a Gaussian, its opacity unchanged) or "antialiased" (its
+                  opacity scaled by sqrt(det Σ / det(Σ + eps2d·I)), the Mip-Splatting 2D filter: a Gaussian
+                  far below a pixel fades instead of passing for a whole pixel); gsplat's names
     sh_tol        bands whose coefficients are all within this of zero are skipped
     compile       torch backend: run the per-chunk maths through ``torch.compile`` (slow first call)
     """
@@ -34,10 +39,15 @@ class RenderSettings:
     near: float = 0.01
     far: float = 1e10
     eps2d: float = 0.3
+    rasterize_mode: str = "classic"
     sh_tol: float = 0.0
     compile: bool = False
 
     def __post_init__(self) -> None:
+        if self.rasterize_mode not in RASTERIZE_MODES:
+            raise ValueError(
+                f"unknown rasterize_mode {self.rasterize_mode!r}; choose one of {', '.join(RASTERIZE_MODES)}"
+            )
         if self.tile_size < 1 or self.chunk < 1 or self.max_elements < 1:
             raise ValueError(f"tile_size, chunk and max_elements must be positive: {self}")
         if not 0.0 < self.near < self.far:

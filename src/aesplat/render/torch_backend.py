@@ -31,6 +31,7 @@ def render_torch(
     proj, counts = project_gaussians(
         gaussians, extrinsics, intrinsics, height, width, sh_degree,
         near=settings.near, far=settings.far, eps2d=settings.eps2d, covariances=covariances, colors=colors,
+        antialiased=settings.rasterize_mode == "antialiased",
     )  # fmt: skip
     bins = bin_gaussians(
         proj.camera,
