@@ -18,7 +18,7 @@ from .appearance import APPEARANCE_MODES, VIEW_AGGREGATIONS, build_appearance
 from .camera_head import CameraHead
 from .dpt import DepthHead
 from .encoder import EncoderConfig, PatchEncoder
-from .gaussian_head import GaussianHead
+from .gaussian_head import GaussianHead, pixel_scales_to_scene
 from .transformer import GeometryTransformer, TransformerConfig
 from .weights import WeightsReport, load_weights
 
@@ -57,7 +57,12 @@ class ModelConfig:
     # model.net.far set it); the data carry none.
     near: float = 0.1
     far: float = 100.0
+    # What the Gaussian head's scales mean (gaussian_head.SCALE_MODES): absolute (scene units, the paper's:
+    # scale_multiplier * softplus) or pixel (scale_pixels: pixels at the Gaussian's own depth); both capped at
+    # scale_max scene units.
+    scale_mode: str = "absolute"
     scale_multiplier: float = 0.001
+    scale_pixels: tuple[float, float] = (0.5, 15.0)
     scale_max: float = 0.3
     weights: str | None = None  # local timm / DINOv2 ViT/14 or VGGT checkpoint (see weights.py)
 
@@ -177,6 +182,7 @@ class AESplatModel(nn.Module):
         self.gaussian_head = GaussianHead(
             token_dim, cfg.head_features, cfg.head_channels, cfg.gaussian_feature_dim,
             self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max, cfg.head_precision,
+            cfg.scale_mode, cfg.scale_pixels,
         )  # fmt: skip
         self.weights_report: WeightsReport | None = None
         if cfg.weights:
@@ -303,6 +309,9 @@ class AESplatModel(nn.Module):
             means = unproject_depth(depth, ctx_k, ctx_e).reshape(b, vc, h * w, 3)
 
             g = self.gaussian_head(context_tokens, grid, context_images.flatten(0, 1))
+            scales = g.scales.unflatten(0, (b, vc))  # [B, Vc, P, 3]
+            if self.cfg.scale_mode == "pixel":
+                scales = pixel_scales_to_scene(scales, depth, ctx_k, self.cfg.scale_max)
             camera_quats = matrix_to_quat(ctx_e[..., :3, :3])  # [B, Vc, 4]
             quats = _quat_multiply(camera_quats[:, :, None], g.quats.unflatten(0, (b, vc)))  # to view 0's frame
             head_sh = None if g.sh is None else g.sh.unflatten(0, (b, vc))
@@ -312,7 +321,7 @@ class AESplatModel(nn.Module):
             gaussians = Gaussians(
                 means=means.reshape(b, -1, 3),
                 quats=quats.reshape(b, -1, 4),
-                scales=g.scales.reshape(b, -1, 3),
+                scales=scales.reshape(b, -1, 3),
                 opacities=g.opacities.reshape(b, -1),
                 sh=sh,
             )
@@ -377,8 +386,9 @@ def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4
         else:
             allowed = ", ".join(sorted(top | set(_NESTED)))
             raise TypeError(f"build_model got an unknown option {key!r}; options are: {allowed}")
-    if direct.get("head_channels") is not None:
-        direct["head_channels"] = tuple(direct["head_channels"])
+    for key in ("head_channels", "scale_pixels"):
+        if direct.get(key) is not None:
+            direct[key] = tuple(direct[key])
     cfg = replace(
         cfg,
         encoder=replace(cfg.encoder, **nested["encoder"]),
@@ -409,7 +419,11 @@ class NetOptions:
     camera_hidden: int | None = None  # camera head MLP width
     gvsre_dim: int | None = None  # GVSRE output width
     appearance_hidden: int | None = None  # view-dependent head MLP width
-    scale_multiplier: float | None = None  # Gaussian scale = multiplier * softplus(.)
+    scale_mode: str | None = (
+        None  # absolute (scene units, the paper's) | pixel (pixels at the Gaussian's depth)
+    )
+    scale_multiplier: float | None = None  # absolute mode: Gaussian scale = multiplier * softplus(.)
+    scale_pixels: tuple[float, float] | None = None  # pixel mode: the range of scales, in pixels
     scale_max: float | None = None  # cap of the Gaussian scales (scene units)
 
     def given(self) -> dict[str, Any]:

@@ -299,6 +299,14 @@ def _load_aesplat_state(
             f"the {len(head)} appearance tensors are not loaded (that head starts from its initialisation)",
             stacklevel=3,
         )
+    saved_scales = ((trained_with or {}).get("options") or {}).get("scale_mode") or "absolute"
+    scales = getattr(getattr(model, "cfg", None), "scale_mode", saved_scales)
+    if saved_scales != scales:  # the same tensors, another meaning: loaded, and said
+        warnings.warn(
+            f"weights {path}: its Gaussian head was trained with scale_mode {saved_scales}, this model's is "
+            f"{scales}; its scale outputs load but meant other sizes (a warm start made with {scales} fits)",
+            stacklevel=3,
+        )
     try:
         _load_matching(model, own, "", report)
     except ValueError as err:
