@@ -2,6 +2,7 @@
 
 import csv
 import json
+import math
 import os
 import subprocess
 import sys
@@ -75,6 +76,10 @@ def test_smoke_fit_then_test_writes_checkpoint_csv_and_json(shards, tmp_path):
     assert set(summary["buckets"]) >= {"small", "medium", "large"}
     assert summary["metrics"]["lpips"] is None and "lpips" in summary["unavailable"]
     assert len(list((out / "renders").glob("*.png"))) == 2
+    # Point lattice or scene: the shares and the fusion gain per scene; the transfer gain needs larger shards.
+    assert all(0 <= float(r[m]) <= 1 for r in rows for m in ("opaque_share", "subpixel_share"))
+    assert all(math.isfinite(float(r["fusion_gain_db"])) and r["transfer_gain_db"] == "" for r in rows)
+    assert summary["metrics"]["transfer_gain_db"] is None and summary["counts"]["fusion_gain_db"] == 2
 
     # `--ckpt_path last` continues the run from its directory (one more epoch), with the same wandb id.
     run_id = (run_dir / "wandb_run_id").read_text()

@@ -393,7 +393,7 @@ def check_inputs(command: str, cfg, resuming: bool = False) -> None:
     elif command == "validate":  # the split validation runs on, as fit's validation
         find_shards(cfg.data.root, validation_split(cfg.data.root, cfg.data.get("validate_on_test", False)))
     else:
-        find_shards(cfg.data.root, "test")
+        find_shards(cfg.data.root, cfg.data.get("test_split", "test"))
     weights = cfg.model.net.get("weights") if cfg.model.get("net") else None
     if weights:
         read_torch_file(weights, "--model.net.weights")

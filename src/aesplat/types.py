@@ -158,6 +158,8 @@ class BatchedExample:
     overlap    [B] context overlap (NaN where unknown), gap [B] context frame gap
     highlight  [B, Vt, 1, H, W] bool, the target pixels whose specular term exceeds the shards' threshold
                (synthetic test data; all false for a diffuse scene), or None where the data carry no masks
+    target_large  [B, Vt, 3, sH, sW] the target images at s times the size (uint8 or float, as ``target``),
+               for the resolution-transfer metric (``data.eval_transfer_scale``), or None
     """
 
     context: BatchedViews
@@ -167,6 +169,7 @@ class BatchedExample:
     gap: Tensor | None = None
     dataset: list[str] = field(default_factory=list)
     highlight: Tensor | None = None
+    target_large: Tensor | None = None
 
     def __post_init__(self) -> None:
         b = self.context.images.shape[0]
@@ -185,10 +188,28 @@ class BatchedExample:
                 raise ValueError(
                     f"BatchedExample.highlight must have shape {want}, got {tuple(self.highlight.shape)}"
                 )
+        if self.target_large is not None:
+            large, target = self.target_large, self.target.images
+            h, w = self.target.image_shape
+            ok = large.ndim == 5 and large.shape[:3] == target.shape[:3] and large.dtype == target.dtype
+            if (
+                not ok
+                or large.shape[-2] % h
+                or large.shape[-1] % w
+                or large.shape[-2] // h != large.shape[-1] // w
+            ):
+                raise ValueError(
+                    f"BatchedExample.target_large must be the targets {tuple(target.shape)} ({target.dtype}) "
+                    f"at an integer multiple of their size, got {tuple(large.shape)} ({large.dtype})"
+                )
 
     def float_images(self) -> BatchedExample:
         """Convert uint8 images of both view sets to float32 in [0, 1] (do it after moving to the device)."""
-        return replace(self, context=self.context.float_images(), target=self.target.float_images())
+        large = self.target_large
+        if large is not None and large.dtype == torch.uint8:
+            large = large.float() / 255.0
+        return replace(self, context=self.context.float_images(), target=self.target.float_images(),
+                       target_large=large)  # fmt: skip
 
     @property
     def batch_size(self) -> int:
@@ -202,4 +223,4 @@ class BatchedExample:
 
         return replace(self, context=self.context.to(device, dtype), target=self.target.to(device, dtype),
                        overlap=move(self.overlap), gap=move(self.gap),
-                       highlight=move(self.highlight))  # fmt: skip
+                       highlight=move(self.highlight), target_large=move(self.target_large))  # fmt: skip

@@ -585,3 +585,30 @@ def _ddp_rank(rank: int, root: str, out: str) -> None:
         Path(out, f"rank{rank}.json").write_text(json.dumps(sorted(set(scenes))))
     finally:
         dist.destroy_process_group()
+
+
+def test_eval_transfer_scale_adds_the_targets_at_twice_the_size(synthetic_shards):
+    """The ground truth of the resolution-transfer metric: every target decoded from the shard at s times the
+    model's size, the same images a run at that size reads."""
+    half = SIZE // 2
+    batch = next(iter(module(synthetic_shards, image_size=half, eval_transfer_scale=2).test_dataloader()))
+    full = next(iter(module(synthetic_shards).test_dataloader()))
+    assert batch.target.images.shape[-2:] == (half, half)
+    assert batch.target_large.shape == full.target.images.shape
+    assert torch.equal(batch.target_large, full.target.images)
+    assert torch.equal(batch.float_images().target_large, full.float_images().target.images)
+    assert next(iter(module(synthetic_shards).test_dataloader())).target_large is None
+
+
+def test_eval_transfer_scale_needs_shards_that_large(synthetic_shards):
+    with pytest.raises(UserError, match=rf"at least {2 * SIZE}px.*holds images {SIZE}px.*--size {2 * SIZE}"):
+        module(synthetic_shards, eval_transfer_scale=2).test_dataloader()
+
+
+def test_test_split_scores_the_validation_scenes_when_asked(synthetic_shards):
+    scenes = {s for b in module(synthetic_shards, test_split="validation").test_dataloader() for s in b.scene}
+    tested = {s for b in module(synthetic_shards).test_dataloader() for s in b.scene}
+    validation = {s for b in module(synthetic_shards).val_dataloader() for s in b.scene}
+    assert scenes == validation and scenes.isdisjoint(tested)
+    with pytest.raises(UserError, match="test_split"):
+        module(synthetic_shards, test_split="train")

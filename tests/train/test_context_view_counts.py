@@ -205,6 +205,6 @@ def test_the_target_views_pose_errors_leave_the_other_context_views_out(tmp_path
     out = SimpleNamespace(extrinsics=predicted)
     rendered = SimpleNamespace(color=batch.target.images.float() / 255)
     monkeypatch.setattr(module, "forward", lambda *args, **kwargs: (out, rendered))
-    metrics, _ = module._evaluate(batch)
+    metrics, _, _ = module._evaluate(batch)
     assert metrics["rot_err_deg"].tolist() == pytest.approx([40 / 3] * 2, abs=1e-3)  # views 1, 2, 3: 0, 30, 10
     assert metrics["rot_err_target_deg"].tolist() == pytest.approx([10.0] * 2, abs=1e-3)

@@ -35,6 +35,8 @@ from .stream import (
 
 __all__ = ["DataModule", "find_shards", "has_split", "validation_split"]
 
+TEST_SPLITS = ("test", "validation")
+
 log = logging.getLogger("aesplat.data")
 # Lightning warns that an IterableDataset's __len__ may be wrong with several workers; ours is exact by
 # construction (each worker yields its fixed share of the rank's batches).
@@ -72,6 +74,11 @@ class DataModule(L.LightningDataModule):
             end of its range); shards carry k-view contexts up to ``to_shards.py --eval-context-views``.
         validate_on_test: validate on the test split when the shards have no validation split (checkpoint
             selection then sees the test scenes; the logs say so at every validation).
+        test_split: the split ``aesplat test`` scores: ``test``, or ``validation`` to compare settings on the
+            scenes choices are made on (docs/validation.md).
+        eval_transfer_scale: s > 1 also decodes every evaluation target at s x image_size, the ground truth of
+            the resolution-transfer metric (``aesplat test``'s ``transfer_gain_db``); the shards must hold
+            images at least that large (convert them with ``to_shards.py --size`` s x image_size).
         shuffle_buffer: examples held per worker for shuffling (each holds its scene's small members; frames are
             read from the shard when picked).
         seed: base seed of the training streams (and of the fixed pools).
@@ -97,6 +104,8 @@ class DataModule(L.LightningDataModule):
         eval_num_target_views: int | None = None,
         eval_num_context_views: int | None = None,
         validate_on_test: bool = False,
+        test_split: str = "test",
+        eval_transfer_scale: int = 1,
         shuffle_buffer: int = 64,
         seed: int = 0,
     ) -> None:
@@ -115,6 +124,12 @@ class DataModule(L.LightningDataModule):
         if fixed_pool and not self.context_views.fixed:
             raise UserError("data.fixed_pool draws its examples once, with one count of context views: give "
                             "data.num_context_views a number, not a range")  # fmt: skip
+        if test_split not in TEST_SPLITS:
+            raise UserError(f"data.test_split must be one of {', '.join(TEST_SPLITS)}, got {test_split!r}")
+        if eval_transfer_scale < 1:
+            raise UserError(f"data.eval_transfer_scale must be >= 1 (1: off), got {eval_transfer_scale}")
+        self.test_split = test_split
+        self.eval_transfer_scale = eval_transfer_scale
         self.num_context_views = num_context_views  # as given: what the model checks its head against
         self.root = Path(root)
         self.image_size = image_size
@@ -216,7 +231,8 @@ class DataModule(L.LightningDataModule):
         if not train:
             return StreamConfig(image_size=self.image_size, batch_size=self.eval_batch_size,
                                 context_views=ContextCount(self.eval_context_views, self.eval_context_views),
-                                num_target_views=self.eval_num_target_views)  # fmt: skip
+                                num_target_views=self.eval_num_target_views,
+                                large_scale=self.eval_transfer_scale)  # fmt: skip
         return StreamConfig(
             image_size=self.image_size,
             batch_size=self.batch_size,
@@ -300,11 +316,22 @@ class DataModule(L.LightningDataModule):
                     )
 
     def eval_dataset(self, split: str = "test") -> EvalStream:
-        """The evaluation stream of ``test``, or of ``val``: the validation split (``validation_split``)."""
+        """The evaluation stream of ``test`` (the split ``test_split`` names), or of ``val``: the validation
+        split (``validation_split``)."""
         counters = self._counters["test" if split == "test" else "val"]
-        folder = "test" if split == "test" else self.validation_split()
+        folder = self.test_split if split == "test" else self.validation_split()
         shards = self.shards(folder)
         manifest = read_manifest(self.root)
+        large = self.image_size * self.eval_transfer_scale
+        if self.eval_transfer_scale > 1 and (
+            manifest is None or manifest.size is None or manifest.size < large
+        ):
+            stored = "of unknown size" if manifest is None or manifest.size is None else f"{manifest.size}px"
+            raise UserError(
+                f"data.eval_transfer_scale {self.eval_transfer_scale} needs shards of at least {large}px as "
+                f"ground truth; {self.root} holds images {stored}: convert with `python data_prep/to_shards.py "
+                f"--src SRC --out DIR --size {large}` and give --data.root DIR"
+            )
         record = None if manifest is None else manifest.splits.get(folder)
         k = self.eval_context_views
         if record is not None and k > record.context_views:

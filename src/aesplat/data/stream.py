@@ -187,6 +187,7 @@ class StreamConfig:
     min_target_distance: int = 1
     examples_per_scene: int = 1
     fixed_pool: int = 0
+    large_scale: int = 1  # evaluation: also decode each target at image_size x this (1: no)
 
 
 @dataclass
@@ -195,7 +196,8 @@ class Example:
 
     images uint8 [V, 3, H, W]; extrinsics [V, 4, 4] camera-to-world; intrinsics [V, 3, 3] normalised;
     index int64 [V] source frame ids; gap: context gap in stored frames (what the curriculum judges);
-    overlap: NaN where unknown; highlight bool [Vt, 1, H, W] target highlight masks, or None."""
+    overlap: NaN where unknown; highlight bool [Vt, 1, H, W] target highlight masks, or None; target_large
+    uint8 [Vt, 3, sH, sW] the targets at ``StreamConfig.large_scale`` times the size, or None."""
 
     images: Tensor
     extrinsics: Tensor
@@ -207,6 +209,7 @@ class Example:
     gap: int
     overlap: float = float("nan")
     highlight: Tensor | None = None
+    target_large: Tensor | None = None
 
 
 def _image(data: bytes, name: str, size: int) -> Tensor:
@@ -306,10 +309,14 @@ def decode_evaluation_sample(raw: dict[str, bytes], cfg: StreamConfig) -> Exampl
     highlight = None
     if masks and all(m in raw for m in masks):
         highlight = torch.stack([_mask(raw[m], m, cfg.image_size) for m in masks])
+    large = None
+    if cfg.large_scale > 1:
+        size = cfg.image_size * cfg.large_scale
+        large = torch.stack([_image(raw[f"{names[f]}.jpg"], names[f], size) for f in targets])
     overlap = meta.get("overlap")
     return Example(images, extrinsics[picked], intrinsics[picked], torch.tensor(views, dtype=torch.int64),
                    len(chosen), str(meta["scene"]), str(meta.get("dataset", "")), int(meta["gap"]),
-                   float("nan") if overlap is None else float(overlap), highlight)  # fmt: skip
+                   float("nan") if overlap is None else float(overlap), highlight, large)  # fmt: skip
 
 
 def collate(examples: list[Example]) -> BatchedExample:
@@ -344,6 +351,9 @@ def collate(examples: list[Example]) -> BatchedExample:
         gap=torch.tensor([e.gap for e in examples], dtype=torch.int64),
         dataset=[e.dataset for e in examples],
         highlight=torch.stack([e.highlight for e in examples]) if all(with_masks) else None,
+        target_large=None
+        if examples[0].target_large is None
+        else torch.stack([e.target_large for e in examples]),
     )
 
 

@@ -157,7 +157,7 @@ class LearningCurve(Callback):
         sums, counts, pairs = dict.fromkeys(_METRICS, 0.0), dict.fromkeys(_METRICS, 0), []
         for raw in self._split_batches(trainer, split):
             batch = pl_module.on_after_batch_transfer(raw.to(pl_module.device), 0)
-            metrics, _ = pl_module._evaluate(batch)  # per scene, as `aesplat test` scores them
+            metrics, _, _ = pl_module._evaluate(batch)  # per scene, as `aesplat test` scores them
             for key in _METRICS:  # the curve's columns (the target views' pose errors: the test CSV's only)
                 if key in metrics:
                     sums[key] += float(metrics[key].sum())

@@ -25,8 +25,14 @@ from .metrics import OVERLAP_BUCKETS
 # the share of highlight pixels. Empty for data without highlight masks.
 # rot_err_target_deg / trans_err_target_deg: the pose errors of the target views alone, the same views at
 # every count of context views (rot_err_deg / trans_err_deg average over the other context views too).
+# opaque_share, subpixel_share, fusion_gain_db, psnr_transfer, psnr_upsampled, transfer_gain_db: whether the
+# Gaussians form a 3D scene or a point lattice (train/splat_metrics.py); the transfer figures only with
+# data.eval_transfer_scale.
+SPLAT_METRICS = ("opaque_share", "subpixel_share", "fusion_gain_db", "psnr_transfer", "psnr_upsampled",
+                 "transfer_gain_db")  # fmt: skip
 METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "rot_err_target_deg",
-           "trans_err_target_deg", "psnr_highlight", "psnr_rest", "highlight_fraction")  # fmt: skip
+           "trans_err_target_deg", "psnr_highlight", "psnr_rest", "highlight_fraction",
+           *SPLAT_METRICS)  # fmt: skip
 # context_frames / target_frames: the frames evaluated (space-separated, view 0 first), so evaluations at
 # different counts of context views can be checked to render the same targets.
 CSV_COLUMNS = ("scene", "dataset", "overlap", "bucket", "gap", "context_views", "context_frames",
@@ -41,6 +47,9 @@ class EvalConfig:
     num_sample_renders: int = 8  # scenes whose render grid is saved as PNG
     log_images_every_n_steps: int = 500  # training image grids sent to the logger
     metrics_lpips: bool = True  # compute the LPIPS metric when its weights are present
+    # `aesplat test`: the Gaussians' opaque and sub-pixel shares, the fusion gain (one more render of the
+    # targets per context view) and, with data.eval_transfer_scale, the resolution-transfer gain
+    splat_metrics: bool = True
 
 
 def _finite(value: float | None) -> bool:

@@ -34,7 +34,7 @@ from aesplat.model import (
     forward_batch,
 )
 from aesplat.render import RasterizerConfig, render
-from aesplat.types import BatchedExample, RenderOutput
+from aesplat.types import BatchedExample, Gaussians, RenderOutput
 
 from .evaluation import EvalConfig, save_image, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, camera_loss, maybe_lpips
@@ -42,6 +42,7 @@ from .metrics import highlight_psnr, overlap_bucket, psnr, relative_pose_errors,
 from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates, skipped_when
 from .rng import restore_rng_state, rng_state
 from .skip_guard import SkipGuard
+from .splat_metrics import fusion_gain, gaussian_shares, transfer_gain
 
 
 class AESplatModule(LightningModule):
@@ -107,12 +108,16 @@ class AESplatModule(LightningModule):
         first = 0 if with_context else batch.context.num_views
         height, width = batch.context.image_shape
         out = forward_batch(self.model, batch, self.cameras, predict_cameras)
-        background = torch.tensor(self.render_cfg.background, device=self.device)
-        rendered = render(
-            out.gaussians, out.extrinsics[:, first:], out.intrinsics[:, first:], height, width,
-            background=background, **self.render_cfg.render_kwargs(),
-        )  # fmt: skip
+        rendered = self.render(
+            out.gaussians, out.extrinsics[:, first:], out.intrinsics[:, first:], height, width
+        )
         return out, rendered
+
+    def render(self, gaussians: Gaussians, extrinsics: Tensor, intrinsics: Tensor, height: int, width: int):
+        """``aesplat.render.render`` with the run's rasterizer settings and background."""
+        background = torch.tensor(self.render_cfg.background, device=self.device)
+        return render(gaussians, extrinsics, intrinsics, height, width, background=background,
+                      **self.render_cfg.render_kwargs())  # fmt: skip
 
     # ----------------------------------------------------------------------------------------- training
     def _sync_curriculum(self) -> None:
@@ -233,7 +238,7 @@ class AESplatModule(LightningModule):
                 self.log(f"data/{key}", float(count), rank_zero_only=True)
 
     # ----------------------------------------------------------------------------------------- evaluation
-    def _evaluate(self, batch: BatchedExample) -> tuple[dict[str, Tensor], RenderOutput]:
+    def _evaluate(self, batch: BatchedExample) -> tuple[dict[str, Tensor], ModelOutput, RenderOutput]:
         """Per-scene metrics: image metrics averaged over each scene's target views, pose errors over views
         (all but view 0, and the target views alone: the same views whatever the count of context views)."""
         out, rendered = self(batch)
@@ -249,10 +254,25 @@ class AESplatModule(LightningModule):
             metrics["rot_err_deg"], metrics["trans_err_deg"] = rot.mean(1), trans.mean(1)
             metrics["rot_err_target_deg"] = rot[:, -vt:].mean(1)
             metrics["trans_err_target_deg"] = trans[:, -vt:].mean(1)
-        return metrics, rendered
+        return metrics, out, rendered
+
+    def _splat_metrics(
+        self, batch: BatchedExample, out: ModelOutput, rendered: RenderOutput, fused_psnr: Tensor
+    ) -> dict[str, Tensor]:
+        """Point lattice or 3D scene (``splat_metrics``): the Gaussians' opaque and sub-pixel shares, the fusion
+        gain and, with ``batch.target_large``, the resolution-transfer gain; each [B]."""
+        vc = batch.context.num_views
+        extrinsics, intrinsics = out.extrinsics[:, vc:], out.intrinsics[:, vc:]
+        metrics = gaussian_shares(out.gaussians, out.depth, out.intrinsics[:, :vc])
+        metrics["fusion_gain_db"] = fusion_gain(self.render, out.gaussians, vc, extrinsics, intrinsics,
+                                                batch.target.images, fused_psnr)  # fmt: skip
+        if batch.target_large is not None:
+            metrics.update(transfer_gain(self.render, out.gaussians, extrinsics, intrinsics, rendered.color,
+                                         batch.target_large))  # fmt: skip
+        return metrics
 
     def validation_step(self, batch: BatchedExample, batch_idx: int) -> None:
-        metrics, rendered = self._evaluate(batch)
+        metrics, _, rendered = self._evaluate(batch)
         for key, values in metrics.items():
             if key in self.val_means:  # the target views' pose errors go to the test CSV only
                 self.val_means[key].update(values)
@@ -267,7 +287,9 @@ class AESplatModule(LightningModule):
             metric.reset()
 
     def test_step(self, batch: BatchedExample, batch_idx: int) -> None:
-        metrics, rendered = self._evaluate(batch)
+        metrics, out, rendered = self._evaluate(batch)
+        if self.eval_cfg.splat_metrics:
+            metrics.update(self._splat_metrics(batch, out, rendered, metrics["psnr"]))
         if batch.highlight is not None:  # highlight pixels vs the rest; a view without highlights is skipped
             b, vt = batch.highlight.shape[:2]
             split = highlight_psnr(rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1),
