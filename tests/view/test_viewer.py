@@ -80,7 +80,7 @@ def test_viewer_in_headless_chromium(prediction):
     need_viser()
     need(browser.find_chromium() is not None, "Chromium (apt-get install chromium)")
     from aesplat.view import render_viewpoint, scene_from_path
-    from aesplat.view.app import Viewer, ViewerOptions, to_uint8
+    from aesplat.view.app import Viewer, ViewerOptions, framing_distance, to_uint8
 
     before = snapshot(prediction)
     scene = scene_from_path(prediction)
@@ -100,6 +100,18 @@ def test_viewer_in_headless_chromium(prediction):
                 return coloured if len(coloured) > 0.1 * len(pixels) and all(near) else None
 
             drawn = wait_for(scene_drawn, 60, "the splats to be drawn")
+            # the first view looks along input camera 0, moved back to frame the Gaussians (at least half
+            # their median depth, clear of camera 0's frustum); the novel-view path is hidden until asked for
+            start = next(iter(fast.clients.values()))
+            now, view0 = start.viewpoint(), start.views[0]
+            assert abs(float(np.dot(now.wxyz, view0.wxyz))) > 1 - 1e-6
+            c2w = view0.extrinsics().double()
+            means = scene.gaussians.means[0].double()
+            depth = float(((means - c2w[:3, 3]) @ c2w[:3, 2]).median())
+            back = max(framing_distance(means, c2w, view0.fov, view0.aspect), 0.5 * depth)
+            expected = (c2w[:3, 3] - back * c2w[:3, 2]).numpy()
+            assert np.allclose(now.position, expected, atol=1e-4)
+            assert start.path_nodes and not any(node.visible for node in start.path_nodes)
             red, green, blue = drawn.T
             assert (red > blue + 60).mean() > 0.2 and (blue > red + 60).mean() > 0.2  # both halves
             # red, blue, and their blends with each other and the background: green never leads

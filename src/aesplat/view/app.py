@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import socket
 import threading
 import time
@@ -53,6 +54,22 @@ def check_port_free(host: str, port: int) -> None:
             raise UserError(f"cannot listen on {host}:{port} ({err.strerror}); give another --port") from None
 
 
+def framing_distance(
+    means: torch.Tensor, c2w: torch.Tensor, fov: float, aspect: float, keep: float = 0.95
+) -> float:
+    """How far back along a camera's axis the eye must move for ``keep`` of the points to be in its view.
+
+    means [N, 3] world points, c2w [4, 4] the camera (OpenCV axes), fov its vertical field of view (radians),
+    aspect width / height. A point (x, y, z) in the camera's frame is in view from ``t`` behind it when
+    |x| <= (z + t) tan(fov_x / 2) and |y| <= (z + t) tan(fov / 2); the answer is the ``keep`` quantile of the
+    smallest such t over the points, never negative.
+    """
+    local = (means - c2w[:3, 3]) @ c2w[:3, :3]  # [N, 3] in the camera's frame
+    tan_y = math.tan(fov / 2)
+    need = torch.maximum(local[:, 0].abs() / (tan_y * aspect), local[:, 1].abs() / tan_y) - local[:, 2]
+    return max(float(torch.quantile(need, keep)), 0.0)
+
+
 def png_bytes(image: np.ndarray) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(image).save(buf, format="PNG")
@@ -62,13 +79,14 @@ def png_bytes(image: np.ndarray) -> bytes:
 @dataclass(frozen=True)
 class ViewerOptions:
     """How the viewer starts: host and port it listens on (0: any free port), the render mode, whether the
-    cameras show, the height of exact renders (their width follows the browser's aspect), and where and how
-    the exact renders run."""
+    input cameras and the novel-view path show, the height of exact renders (their width follows the browser's
+    aspect), and where and how the exact renders run."""
 
     host: str = "127.0.0.1"
     port: int = 8080
     mode: str = "fast"
     show_cameras: bool = True
+    show_path: bool = False
     exact_height: int = 480
     device: str = "cpu"
     backend: str = "auto"
@@ -179,21 +197,25 @@ class ClientSession:
             )  # fmt: skip
             frustum.on_click(lambda _event, view=view: self.go_to(view))
             self.frustums.append(frustum)
+        self.path_nodes = []  # the novel-view path: hidden unless asked for (it stands between eye and scene)
         if self.path:
             positions = np.array([v.position for v in self.path])
-            self.frustums.append(self.client.scene.add_spline_catmull_rom(
+            self.path_nodes.append(self.client.scene.add_spline_catmull_rom(
                 "/path/curve", points=positions, color=(40, 160, 240), thickness=2.0, thickness_units="screen",
-                visible=self.viewer.options.show_cameras,
+                visible=self.viewer.options.show_path,
             ))  # fmt: skip
             for f, view in enumerate(self.path):
-                self.frustums.append(self.client.scene.add_camera_frustum(
+                self.path_nodes.append(self.client.scene.add_camera_frustum(
                     f"/path/{f:03d}", fov=view.fov, aspect=view.aspect, scale=0.4 * scale, wxyz=view.wxyz,
                     position=view.position, color=(40, 160, 240), thickness=1.5, thickness_units="screen",
-                    visible=self.viewer.options.show_cameras,
+                    visible=self.viewer.options.show_path,
                 ))  # fmt: skip
 
     def _set_initial_camera(self) -> None:
-        """Behind input view 0 (its frustum and the scene in sight), else in front of the Gaussians."""
+        """Input view 0's direction and field of view, moved back along its axis far enough that the Gaussians
+        (all but the farthest-out 5 %) are in view (:func:`framing_distance`), and at least half their median
+        depth, so that view 0's own frustum (its photo on it) stands in the scene instead of filling the
+        screen; without cameras, in front of the Gaussians."""
         means = self.scene.gaussians.means[0].double()
         camera = self.client.camera
         if self.views:
@@ -201,9 +223,10 @@ class ClientSession:
             c2w = view.extrinsics().double()
             forward, centre = c2w[:3, 2], c2w[:3, 3]
             depth = float(((means - centre) @ forward).median().clamp_min(1e-3))
+            back = max(framing_distance(means, c2w, view.fov, view.aspect), 0.5 * depth)
             camera.fov = view.fov
             camera.up_direction = (-c2w[:3, 1]).numpy()
-            camera.position = (centre - 0.5 * depth * forward).numpy()
+            camera.position = (centre - back * forward).numpy()
             camera.look_at = (centre + depth * forward).numpy()
         else:
             target = means.median(dim=0).values
@@ -231,7 +254,10 @@ class ClientSession:
                                      hint="hide Gaussians less opaque than this")  # fmt: skip
             screenshot = gui.add_button("Save screenshot", hint="the current view as a PNG download")
         with gui.add_folder("Cameras"):
-            show = gui.add_checkbox("Show cameras", initial_value=self.viewer.options.show_cameras)
+            show = gui.add_checkbox("Show cameras", initial_value=self.viewer.options.show_cameras,
+                                    hint="the input cameras' frustums, textured with their images")  # fmt: skip
+            show_path = gui.add_checkbox("Show path", initial_value=self.viewer.options.show_path,
+                                         hint="the novel-view path and its frames")  # fmt: skip
             names = [f"{i:02d} {c.name}" for i, c in enumerate(self.scene.cameras)]
             names += [f"path {f:03d}" for f in range(len(self.path))]
             if names:
@@ -263,6 +289,11 @@ class ClientSession:
         def _(_) -> None:
             for node in self.frustums:
                 node.visible = show.value
+
+        @show_path.on_update
+        def _(_) -> None:
+            for node in self.path_nodes:
+                node.visible = show_path.value
 
         screenshot.on_click(lambda _: self.send_screenshot())
 

@@ -36,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="address to listen on; 0.0.0.0 shares the viewer with the network")  # fmt: skip
     parser.add_argument("--port", type=int, default=defaults.port, help="port (0: any free port)")
     parser.add_argument("--mode", choices=MODES, default=defaults.mode, help="render mode to start in")
-    parser.add_argument("--hide-cameras", action="store_true", help="start with the cameras hidden")
+    parser.add_argument("--hide-cameras", action="store_true", help="start with the input cameras hidden")
+    parser.add_argument("--show-path", action="store_true", help="start with the novel-view path shown")
     parser.add_argument("--exact-height", type=int, default=defaults.exact_height,
                         help="pixel height of the exact mode's renders (at most the browser's)")  # fmt: skip
     parser.add_argument(
@@ -73,9 +74,9 @@ def start_viewer(args: argparse.Namespace):
         raise UserError(
             "give one prediction folder or .ply file, or --ckpt CKPT and the images to predict from"
         )
-    options = ViewerOptions(host=args.host, port=args.port, mode=args.mode,
-                            show_cameras=not args.hide_cameras, exact_height=args.exact_height,
-                            device=str(device), backend=args.backend)  # fmt: skip
+    options = ViewerOptions(host=args.host, port=args.port, mode=args.mode, show_cameras=not args.hide_cameras,
+                            show_path=args.show_path, exact_height=args.exact_height, device=str(device),
+                            backend=args.backend)  # fmt: skip
     return Viewer(scene, options)
 
 
