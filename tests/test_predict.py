@@ -302,7 +302,8 @@ def test_predict_rejects_bad_input(tiny_ckpt, tmp_path):
         main(["--ckpt", str(tiny_ckpt), "--out", out, str(good)])
     with pytest.raises(SystemExit, match="not a multiple of the model's patch size 14"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, "--size", "30", str(good), str(good)])
-    with pytest.raises(SystemExit, match="built for 2 context views and got 3.*view_aggregation: pool"):
+    # the refusal names what predict can do (two photos, or another checkpoint), not a training setting
+    with pytest.raises(SystemExit, match=r"takes 2 photos; got 3\. Give 2, or a checkpoint trained .*pool"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, str(good), str(good), str(good)])
     with pytest.raises(SystemExit, match="ply-sh-degree"):
         main(["--ckpt", str(tiny_ckpt), "--out", out, "--ply-sh-degree", "4", str(good), str(good)])
@@ -507,6 +508,6 @@ def test_overwrite_replaces_the_folder_whole_and_a_failure_leaves_it_untouched(
 
 def test_a_refused_prediction_creates_nothing(tiny_ckpt, tmp_path):
     good = str(save_png(tmp_path / "good.png", np.zeros((28, 28, 3))))
-    with pytest.raises(SystemExit, match="built for 2 context views and got 3"):
+    with pytest.raises(SystemExit, match="takes 2 photos; got 3"):
         main(["--ckpt", str(tiny_ckpt), "--out", str(tmp_path / "out"), good, good, good])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["good.png"]

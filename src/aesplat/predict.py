@@ -396,7 +396,14 @@ def predict_photos(
             "images. Evaluate it with `aesplat test` or `aesplat bench`, or predict with a checkpoint trained "
             "with model.cameras=predicted."
         )
-    loaded.model.check_context_views(len(photos))
+    try:
+        loaded.model.check_context_views(len(photos))
+    except UserError:  # the training setting it names is no option here: say what predict can do instead
+        raise UserError(
+            f"{ckpt} has the paper's appearance head, which takes {loaded.model.cfg.num_context_views} photos; "
+            f"got {len(photos)}. Give {loaded.model.cfg.num_context_views}, or a checkpoint trained with "
+            "model.net.view_aggregation: pool (make demo's), which takes any number"
+        ) from None
     size, patch = size or loaded.image_size, loaded.patch_size
     if size % patch != 0:
         raise UserError(f"--size {size} is not a multiple of the model's patch size {patch}")
