@@ -127,7 +127,7 @@ def default_sweep(
     input_scales: Sequence[float] = (0.5, 0.75, 1.0),
     render_scales: Sequence[float] = (0.25, 0.5, 0.75, 1.0),
     keep_fractions: Sequence[float] = (1.0, 0.5, 0.25, 0.1),
-    min_opacities: Sequence[float] = (0.0, 0.05, 0.2, 0.5),
+    min_opacities: Sequence[float] = (0.0, 0.05, 0.2, 0.5, 0.8),
     precisions: Sequence[str] = ("fp32", "bf16"),
     tile_sizes: Sequence[int] = (),
     compiled: bool = False,
@@ -669,7 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--min-opacities",
         type=_floats,
-        default=[0.0, 0.05, 0.2, 0.5],
+        default=[0.0, 0.05, 0.2, 0.5, 0.8],
         help="opacity thresholds below which Gaussians are dropped",
     )
     parser.add_argument("--precisions", type=_names, default=["fp32", "bf16"], help="model precisions")
