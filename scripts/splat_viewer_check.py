@@ -397,7 +397,8 @@ def main(argv: list[str] | None = None) -> int:
     for key, file in FILES.items():
         picture, state = shown[key]
         held = scene.gaussians.num_gaussians if key == "ply" else (args.pred / file).stat().st_size // 32
-        files[file] = {
+        files[key] = {
+            "file": file,
             "gaussians_in_file": held,
             "gaussians_loaded": state["loaded"],
             "gaussians_in_draw_list": state["drawn"],
@@ -410,8 +411,8 @@ def main(argv: list[str] | None = None) -> int:
             "screenshot": f"{key}.png",
         }
         print(f"{NAME}: {file}: {state['loaded']:,} of {held:,} Gaussians loaded; PSNR "
-              f"{files[file]['psnr_db']['vs_predict_render']:.2f} dB vs predict's render, "
-              f"{files[file]['psnr_db']['vs_sh0_render']:.2f} dB vs the SH-0 render", flush=True)  # fmt: skip
+              f"{files[key]['psnr_db']['vs_predict_render']:.2f} dB vs predict's render, "
+              f"{files[key]['psnr_db']['vs_sh0_render']:.2f} dB vs the SH-0 render", flush=True)  # fmt: skip
 
     options = scene.render_options
     record = {

@@ -138,6 +138,7 @@ def test_the_viewer_draws_both_files_as_aesplat_renders_them(tmp_path, rasterize
     assert record["image_size"] == [WIDTH, HEIGHT]
     assert record["viewer_settings"]["antialiased"] == (rasterize_mode == "antialiased")
     assert record["camera0_gaussians"]["below_viewer_size_floor"] == 0
+    assert set(record["files"]) == {"splat", "ply"}
     for name, result in record["files"].items():
         assert result["gaussians_in_file"] == result["gaussians_loaded"] == count, name
         psnr = result["psnr_db"]
