@@ -172,10 +172,15 @@ def warmstart_data(folder: Path) -> Path:
     return folder
 
 
+# Every command of the benchmark: no logger, no progress bar (its output goes to a log file), one thread.
+QUIET = ("--trainer.logger", "false", "--trainer.enable_progress_bar", "false", "--threads", "1")
+
+
 def _aesplat(args: list[str], log: Path) -> None:
+    """``aesplat ARGS`` with ``QUIET``, its output appended to ``log``."""
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "ab") as f:
-        subprocess.run([*aesplat(), *args], check=True, stdout=f, stderr=subprocess.STDOUT)
+        subprocess.run([*aesplat(), *args, *QUIET], check=True, stdout=f, stderr=subprocess.STDOUT)
 
 
 def warm_start(variant: str, data: Path, work: Path, settings: Settings) -> Path:
@@ -190,31 +195,10 @@ def warm_start(variant: str, data: Path, work: Path, settings: Settings) -> Path
         return out
     folder = work / "warmstarts" / f"{variant}-{settings.warm_steps}"
     print(f"splat_quality: {variant}: warm start ({settings.warm_steps} steps)", flush=True)
-    _aesplat(
-        [
-            "fit",
-            "-c",
-            str(REPO / settings.config),
-            "-c",
-            str(REPO / "conf/warmstart.yaml"),
-            "--threads",
-            "1",
-            "--data.root",
-            str(data),
-            *variant_args(variant),
-            "--trainer.max_steps",
-            str(settings.warm_steps),
-            "--trainer.default_root_dir",
-            str(folder),
-            "--trainer.logger",
-            "false",
-            "--trainer.enable_progress_bar",
-            "false",
-            "--ckpt_path",
-            "last",
-        ],
-        folder / "fit.log",
-    )
+    _aesplat(["fit", "-c", str(REPO / settings.config), "-c", str(REPO / "conf/warmstart.yaml"), "--data.root",
+              str(data), *variant_args(variant), "--trainer.max_steps", str(settings.warm_steps),
+              "--trainer.default_root_dir", str(folder), "--ckpt_path", "last"],
+             folder / "fit.log")  # fmt: skip
     note = (f"benchmarks/splat_quality.py: make warmstart's run with {' '.join(variant_args(variant))}, "
             f"{settings.warm_steps} steps")  # fmt: skip
     subprocess.run([sys.executable, str(REPO / "scripts/export_weights.py"), "--ckpt",
@@ -234,8 +218,7 @@ def warm_figures(variant: str, weights: Path, data: tuple[Path, Path], work: Pat
     folder = work / "warmstarts" / f"{variant}-{settings.warm_steps}-tests"
     base = ["test", "-c", str(REPO / settings.config), "--model.net.weights", str(weights),
             *variant_args(variant), "--data.test_split", "validation", "--data.image_size", str(SIZE),
-            "--trainer.default_root_dir", str(folder), "--trainer.logger", "false",
-            "--trainer.enable_progress_bar", "false", "--threads", "1"]  # fmt: skip
+            "--trainer.default_root_dir", str(folder)]  # fmt: skip
     summaries = {}
     for name, extra in (("posed", ["--model.cameras", "dataset", "--data.root", str(small)]),
                         ("posed_transfer", ["--model.cameras", "dataset", "--data.root", str(large),
@@ -256,38 +239,11 @@ def warm_figures(variant: str, weights: Path, data: tuple[Path, Path], work: Pat
 def fit(run: Run, weights: Path, shards: Path, work: Path, settings: Settings) -> None:
     """``aesplat fit`` of one run from its variant's warm start, one thread (continuing an interrupted one)."""
     folder = run.directory(work)
-    _aesplat(
-        [
-            "fit",
-            "-c",
-            str(REPO / settings.config),
-            "--model.net.weights",
-            str(weights),
-            *variant_args(run.variant),
-            "--seed_everything",
-            str(run.seed),
-            "--data.seed",
-            str(run.seed),
-            "--data.root",
-            str(shards),
-            "--data.image_size",
-            str(SIZE),
-            "--trainer.max_steps",
-            str(settings.steps),
-            "--trainer.default_root_dir",
-            str(folder),
-            "--trainer.logger",
-            "false",
-            "--trainer.enable_progress_bar",
-            "false",
-            "--threads",
-            "1",
-            *settings.extra,
-            "--ckpt_path",
-            "last",
-        ],
-        folder / "fit.log",
-    )
+    _aesplat(["fit", "-c", str(REPO / settings.config), "--model.net.weights", str(weights),
+              *variant_args(run.variant), "--seed_everything", str(run.seed), "--data.seed", str(run.seed),
+              "--data.root", str(shards), "--data.image_size", str(SIZE), "--trainer.max_steps",
+              str(settings.steps), "--trainer.default_root_dir", str(folder), *settings.extra, "--ckpt_path",
+              "last"], folder / "fit.log")  # fmt: skip
 
 
 def test(run: Run, shards: Path, work: Path, name: str, extra: list[str]) -> dict:
@@ -295,8 +251,7 @@ def test(run: Run, shards: Path, work: Path, name: str, extra: list[str]) -> dic
     folder = run.directory(work)
     out = folder / name
     _aesplat(["test", "-c", str(folder / "config.yaml"), "--data.root", str(shards), "--data.test_split",
-              "validation", *extra, "--model.eval.output_dir", str(out), "--trainer.logger", "false",
-              "--trainer.enable_progress_bar", "false", "--threads", "1", "--ckpt_path",
+              "validation", *extra, "--model.eval.output_dir", str(out), "--ckpt_path",
               str(folder / "checkpoints" / "last.ckpt")], folder / "test.log")  # fmt: skip
     return json.loads((out / "test-latest" / "summary.json").read_text())
 

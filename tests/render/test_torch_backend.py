@@ -46,6 +46,16 @@ def _antialiased_reference_fn(g, ext, intr, bg):
     return reference_render(g, ext, intr, H, W, bg, antialiased=True)
 
 
+def assert_float32_matches(out, grad, ref_out, ref_grad) -> None:
+    """A float32 render and its gradients against the float64 reference's, to float32 tolerance."""
+    for name, a, b in zip(("color", "depth", "alpha"), out, ref_out):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5, msg=name)
+    names = ("means", "quats", "scales", "opacities", "sh", "extrinsics", "intrinsics", "background")
+    for name, a, b in zip(names, grad, ref_grad):
+        assert torch.isfinite(a).all(), name
+        assert (a - b).abs().max() <= 1e-4 * b.abs().max(), f"{name}: {(a - b).abs().max()} vs {b.abs().max()}"
+
+
 @pytest.mark.parametrize(
     ("seed", "options"),
     [(1, {"tile_size": 8, "chunk": 4}), (2, {"tile_size": 16, "chunk": 32}), (3, {"tile_size": 4, "chunk": 7})],
@@ -58,12 +68,7 @@ def test_matches_reference_float32(seed, options):
     ref_out, ref_grad = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
     out, grad = _outputs_and_grads(_torch_fn(**options), _leaves(g, ext, intr, bg, torch.float32), weights)
     assert ref_out[2].max() > 0.9 and (ref_out[2] < 1e-6).any()  # saturated and empty pixels both occur
-    for name, a, b in zip(("color", "depth", "alpha"), out, ref_out):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5, msg=name)
-    names = ("means", "quats", "scales", "opacities", "sh", "extrinsics", "intrinsics", "background")
-    for name, a, b in zip(names, grad, ref_grad):
-        assert torch.isfinite(a).all(), name
-        assert (a - b).abs().max() <= 1e-4 * b.abs().max(), f"{name}: {(a - b).abs().max()} vs {b.abs().max()}"
+    assert_float32_matches(out, grad, ref_out, ref_grad)
 
 
 def test_matches_reference_float64_exactly():
@@ -97,12 +102,7 @@ def test_antialiased_matches_reference_float32():
     )
     classic, _ = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
     assert (classic[2] - ref_out[2]).abs().max() > 0.1  # the filter changes this scene
-    for name, a, b in zip(("color", "depth", "alpha"), out, ref_out):
-        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5, msg=name)
-    names = ("means", "quats", "scales", "opacities", "sh", "extrinsics", "intrinsics", "background")
-    for name, a, b in zip(names, grad, ref_grad):
-        assert torch.isfinite(a).all(), name
-        assert (a - b).abs().max() <= 1e-4 * b.abs().max(), f"{name}: {(a - b).abs().max()} vs {b.abs().max()}"
+    assert_float32_matches(out, grad, ref_out, ref_grad)
 
 
 def test_antialiased_matches_reference_float64_exactly():
