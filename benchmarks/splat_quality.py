@@ -389,15 +389,16 @@ def _fmt(mean: float, half: float, digits: int) -> str:
     return f"{mean:.{digits}f}" + (f" ± {half:.{digits}f}" if math.isfinite(half) else "")
 
 
-WARM_FIGURES = ("posed_psnr", "posed_transfer_gain_db", "posed_fusion_gain_db", "posed_subpixel_share",
-                "posed_opaque_share", "posefree_psnr", "posefree_rot_err_deg")  # fmt: skip
-WARM_LABELS = ("PSNR, the data set's cameras (dB)", "transfer gain, the same (dB)",
-               "fusion gain, the same (dB)", "sub-0.1-px share", "opacity > 0.99 share", "PSNR, pose-free (dB)",
-               "rotation error, pose-free (°)")  # fmt: skip
-WARM_DIGITS = (2, 2, 2, 3, 3, 2, 2)
-RUN_FIGURES = ("psnr", "rot_err_deg", "subpixel_share", "opaque_share", "fusion_gain_db", "transfer_gain_db")
-HEAD_FIGURES = ("start_head_feature_rms", "head_feature_rms", "start_scale_flat_share", "scale_flat_share",
-                "start_opacity_flat_share", "opacity_flat_share")  # fmt: skip
+# Tables of at most seven columns (the page's width): the warm starts in two, the runs' figures in two.
+WARM_TABLES = (
+    (("posed_psnr", "PSNR (dB)", 2), ("posed_transfer_gain_db", "transfer gain (dB)", 2),
+     ("posed_fusion_gain_db", "fusion gain (dB)", 2), ("posed_subpixel_share", "sub-0.1-px share", 3),
+     ("posed_opaque_share", "opacity > 0.99 share", 3)),
+    (("posefree_psnr", "PSNR (dB)", 2), ("posefree_rot_err_deg", "rotation error (°)", 2)),
+)  # fmt: skip
+RUN_FIGURES = ("psnr", "rot_err_deg", "subpixel_share", "fusion_gain_db", "transfer_gain_db")
+HEAD_FIGURES = ("opaque_share", "start_head_feature_rms", "head_feature_rms", "scale_flat_share",
+                "opacity_flat_share")  # fmt: skip
 
 
 def _table(rows: list[dict], figures: tuple[str, ...], title: str = "variant") -> list[str]:
@@ -431,16 +432,21 @@ def markdown(lines: list[dict], warm: dict[str, dict], chosen: str | None, meta:
         *_table([x for x in lines if x["id"] not in VARIANTS], ("psnr", "rot_err_deg", "fusion_gain_db",
                                                                  "transfer_gain_db"), "difference"),
     ]  # fmt: skip
-    if warm:
-        out += ["**The warm starts** (step 0, one per variant; with the data set's cameras the camera head "
-                "plays no part):", "", "| variant | " + " | ".join(WARM_LABELS) + " |",
-                "| --- |" + " ---: |" * len(WARM_FIGURES)]  # fmt: skip
+    titles = (
+        "**The warm starts**, one per variant, at step 0, rendered with the data set's cameras (the camera "
+        "head plays no part):",
+        "**The warm starts**, pose-free at step 0 (where the demo's training starts):",
+    )
+    for title, columns in zip(titles, WARM_TABLES) if warm else ():
+        out += [title, "", "| variant | " + " | ".join(label for _, label, _ in columns) + " |",
+                "| --- |" + " ---: |" * len(columns)]  # fmt: skip
         for variant, figures in warm.items():
-            cells = [_fmt(figures[m], math.nan, d) for m, d in zip(WARM_FIGURES, WARM_DIGITS)]
+            cells = [_fmt(figures[m], math.nan, d) for m, _, d in columns]
             out.append(f"| {NAMES[variant]} | " + " | ".join(cells) + " |")
         out.append("")
-    out += ["**The Gaussian head's output layer** (its input features' RMS, and the shares of its scale and "
-            "opacity outputs where the activation is flat, passing no gradient), warm start → trained:", "",
+    out += ["**The Gaussians and the Gaussian head** after the pose-free training: the opaque share, the RMS "
+            "of the features entering the head's output layer (warm start, trained), and the shares of its "
+            "scale and opacity outputs where the activation is flat, passing no gradient:", "",
             *_table([x for x in lines if x["id"] in VARIANTS], HEAD_FIGURES)]  # fmt: skip
     rule_text = (f"sub-0.1-px share ≤ {MAX_SUBPIXEL:.0%} and transfer gain ≥ {MIN_TRANSFER} dB, then the "
                  "highest validation PSNR")  # fmt: skip
