@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The `make demo` pipeline; the Makefile passes its DEMO_* settings in the environment (see the Makefile).
 #
-#   synthetic scenes -> shards -> { step-0 test [+ random-init test] -> fit -> trained test }   (the method)
+#   synthetic scenes -> shards -> { step-0 test [+ random-init test] -> fit -> trained test
+#                                   -> shards at twice the size -> test rendered at twice the size } (the method)
 #                                 { step-0 test -> fit -> trained test }   (diagnostic, DEMO_DIAGNOSE=1)
 #   -> bench -> report
 #
@@ -43,7 +44,7 @@ diagnostic() {
 }
 
 load_start=$(cut -d' ' -f1-3 /proc/loadavg 2>/dev/null || true)  # the machine's load, for demo.json
-rm -rf "$run" "$DEMO_DIR/initial" "$DEMO_DIR/random" "$DEMO_DIR/bench" "$posed"
+rm -rf "$run" "$DEMO_DIR/initial" "$DEMO_DIR/random" "$DEMO_DIR/bench" "$DEMO_DIR/transfer" "$DEMO_DIR/shards_2x" "$posed"
 mkdir -p "$DEMO_DIR"
 echo "stage,seconds" >"$times"
 
@@ -75,10 +76,17 @@ fi
 stage "aesplat fit" "$AESPLAT" fit "${args[@]}" --trainer.default_root_dir "$run" "${log[@]}" "${fit_args[@]}"
 stage "aesplat test (trained)" "$AESPLAT" test "${args[@]}" --trainer.default_root_dir "$run" \
     --trainer.logger false --ckpt_path "$ckpt"
+# The resolution transfer: the test scenes converted again at twice the size, the trained model rendering its
+# targets at that size against them (and its own render upsampled), docs/evaluation.md.
+stage "shards at twice the size" "$PY" data_prep/to_shards.py --src "$DEMO_DIR/src" --out "$DEMO_DIR/shards_2x" \
+    --size $((2 * DEMO_SIZE))
+stage "aesplat test (rendered at twice the size)" "$AESPLAT" test "${args[@]}" --data.root "$DEMO_DIR/shards_2x" \
+    --data.eval_transfer_scale 2 --trainer.default_root_dir "$run" --trainer.logger false \
+    --model.eval.output_dir "$DEMO_DIR/transfer" --ckpt_path "$ckpt"
 
 # Each `aesplat test` writes into a folder of its own, RUN_DIR/test-<UTC time>; test-latest links the newest.
 report=(--run-dir "$run" --initial "$DEMO_DIR/initial/test-latest" --bench "$DEMO_DIR/bench" --timings "$times"
-    --out "$DEMO_DIR")
+    --transfer "$DEMO_DIR/transfer/test-latest" --out "$DEMO_DIR")
 [[ -n $weights ]] && report+=(--random-init "$DEMO_DIR/random/test-latest")
 [[ -n $load_start ]] && report+=(--load-start "$load_start")
 # DEMO_RESULTS=docs/results/demo: the report also writes the files the documentation quotes its figures from.

@@ -182,3 +182,23 @@ def test_the_results_folder_gets_whole_files_only(tmp_path, monkeypatch):
         "headline.md",
         "render_grid.png",
     ]
+
+
+def test_the_gaussians_goals_and_section_read_the_splat_metrics(tmp_path):
+    report = _report_module()
+    start, trained = _summary(tmp_path / "w", 19.5, 3.0, 6.0), _summary(tmp_path / "t", 20.0, 3.3, 7.0)
+    start["metrics"].update(opaque_share=1.0, subpixel_share=0.91, fusion_gain_db=0.4)
+    trained["metrics"].update(opaque_share=0.0, subpixel_share=0.0, fusion_gain_db=2.4)
+    transfer = {"metrics": {"psnr_transfer": 19.05, "psnr_upsampled": 19.09, "transfer_gain_db": -0.04}}
+    goals = report.goals(trained, None, {}, transfer)
+    assert goals["subpixel_share"] == {"goal": 0.10, "value": 0.0, "met": True}
+    assert goals["transfer_gain_db"] == {"goal": -0.5, "value": -0.04, "met": True}
+    lattice = report.goals(start, None, {}, {"metrics": {"transfer_gain_db": -4.0}})
+    assert not lattice["subpixel_share"]["met"] and not lattice["transfer_gain_db"]["met"]
+    lines = "\n".join(report.splat_section(start, trained, transfer, "warm start"))
+    assert "| largest axis below 0.1 px in its own view | 91.0% | 0.0% |" in lines
+    assert "| fusion gain: all views − the best single view (dB) | +0.40 | +2.40 |" in lines
+    assert "**-0.04 dB** (the demo's goal: at least -0.5 dB; met)" in lines
+    # without the transfer run: the shares alone, no transfer goal
+    assert "transfer_gain_db" not in report.goals(trained, None, {}, None)
+    assert "twice the size" not in "\n".join(report.splat_section(start, trained, None, "warm start"))

@@ -24,5 +24,10 @@ def test_the_shipped_warm_start_loads_completely_into_the_demo_model(monkeypatch
     assert (
         raw["hyper_parameters"]["cameras"] == "dataset" and raw["hyper_parameters"]["loss"]["pose_weight"] > 0
     )
+    # made with the demo's own scale parametrisation and rasterization mode (not in the tensors)
+    made = raw["hyper_parameters"]
+    demo = OmegaConf.load(ROOT / "conf" / "demo.yaml").model
+    assert made["net"]["options"]["scale_mode"] == net["options"]["scale_mode"]
+    assert made["render"]["options"]["rasterize_mode"] == demo.render.options.rasterize_mode
     for key, value in model.state_dict().items():  # the tensors themselves, not just their names
         torch.testing.assert_close(value, raw["state_dict"][f"model.{key}"], rtol=0, atol=0)
