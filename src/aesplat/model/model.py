@@ -419,9 +419,7 @@ class NetOptions:
     camera_hidden: int | None = None  # camera head MLP width
     gvsre_dim: int | None = None  # GVSRE output width
     appearance_hidden: int | None = None  # view-dependent head MLP width
-    scale_mode: str | None = (
-        None  # absolute (scene units, the paper's) | pixel (pixels at the Gaussian's depth)
-    )
+    scale_mode: str | None = None  # absolute (scene units, the paper's) | pixel (pixels at its depth)
     scale_multiplier: float | None = None  # absolute mode: Gaussian scale = multiplier * softplus(.)
     scale_pixels: tuple[float, float] | None = None  # pixel mode: the range of scales, in pixels
     scale_max: float | None = None  # cap of the Gaussian scales (scene units)
