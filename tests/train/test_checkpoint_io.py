@@ -155,3 +155,119 @@ def test_a_moved_run_resumes_into_its_own_last_checkpoint(smoke_shards, tmp_path
     fit(smoke_shards, tmp_path / "moved", max_steps=4, every=2, ckpt_path=str(checkpoints / "last.ckpt"))
     assert sorted(p.name for p in checkpoints.iterdir()) == ["last.ckpt"]  # never last-v1.ckpt
     assert step_of(checkpoints / "last.ckpt") == 4
+
+
+def tampered(path: Path, change) -> None:
+    """Rewrite the RunCheckpoint state stored in the checkpoint at ``path`` with ``change(state)``."""
+    ckpt = torch.load(path, weights_only=True, map_location="cpu")
+    (key,) = [k for k in ckpt["callbacks"] if k.startswith("RunCheckpoint")]
+    change(ckpt["callbacks"][key])
+    torch.save(ckpt, path)
+
+
+def a_thesis(tmp_path: Path) -> Path:
+    """A folder of the user's beside the run: what a resume must never delete."""
+    thesis = tmp_path / "thesis"
+    thesis.mkdir()
+    (thesis / "chapter1.tex").write_text("years of work")
+    return thesis
+
+
+def fit_top_k(smoke_shards, run: Path, max_steps: int, ckpt_path=None, **checkpoint) -> None:
+    L.seed_everything(0)
+    best = RunCheckpoint(dirpath=run / "checkpoints", every_n_train_steps=1, **checkpoint)
+    trainer = make_trainer(
+        max_steps, run, callbacks=[best], plugins=[AtomicCheckpointIO()], log_every_n_steps=1
+    )
+    trainer.fit(make_module(), make_data(smoke_shards, train_batches_per_epoch=4), ckpt_path=ckpt_path)
+
+
+def test_a_stored_last_path_outside_the_checkpoint_folder_is_ignored_not_deleted(smoke_shards, tmp_path, capfd):
+    """The stored ``last_model_path`` is what Lightning removes when it writes the next last.ckpt: one with
+    ``..`` passes its "inside the folder" test. With the folder's own name kept, and with the run moved
+    (the path rebased onto the new folder), the resume saves on and the folder two levels up survives."""
+    thesis = a_thesis(tmp_path)
+    run = tmp_path / "work" / "run"
+    fit(smoke_shards, run, max_steps=2, every=2)
+    checkpoints = run / "checkpoints"
+
+    def escape(state):
+        state["last_model_path"] = f"{state['dirpath']}/../../../thesis"
+
+    tampered(checkpoints / "last.ckpt", escape)
+    fit(smoke_shards, run, max_steps=4, every=2, ckpt_path=str(checkpoints / "last.ckpt"))
+    assert (thesis / "chapter1.tex").read_text() == "years of work"
+    assert step_of(checkpoints / "last.ckpt") == 4
+    err = capfd.readouterr().err
+    assert "aesplat fit: the checkpoint's saved state names paths that are not files in" in err
+    assert "ignored, never deleted" in err and "thesis" in err
+
+    moved = tmp_path / "work" / "moved"  # the rebased route: the stored folder differs from the new one
+    shutil.move(run, moved)
+    tampered(moved / "checkpoints" / "last.ckpt", escape)
+    fit(smoke_shards, moved, max_steps=6, every=2, ckpt_path=str(moved / "checkpoints" / "last.ckpt"))
+    assert (thesis / "chapter1.tex").read_text() == "years of work"
+    assert step_of(moved / "checkpoints" / "last.ckpt") == 6
+
+
+def test_a_stored_top_k_path_outside_the_checkpoint_folder_is_ignored_not_deleted(smoke_shards, tmp_path):
+    """``best_k_models`` and ``kth_best_model_path``: the checkpoint that falls out of the top k is removed.
+    Here the stored worst one is a folder outside the run, and the resume saves a better score."""
+    thesis = a_thesis(tmp_path)
+    run = tmp_path / "work" / "run"
+    top = {"monitor": "train/loss", "mode": "min", "save_top_k": 1}
+    fit_top_k(smoke_shards, run, max_steps=2, **top)
+    (saved,) = (run / "checkpoints").glob("*.ckpt")
+
+    def escape(state):
+        outside = f"{state['dirpath']}/../../../thesis"
+        state["best_k_models"] = {outside: torch.tensor(1e9)}
+        state["kth_best_model_path"], state["kth_value"] = outside, torch.tensor(1e9)
+        state["best_model_path"], state["best_model_score"] = outside, torch.tensor(1e9)
+
+    tampered(saved, escape)
+    fit_top_k(smoke_shards, run, max_steps=4, ckpt_path=str(saved), **top)
+    assert (thesis / "chapter1.tex").read_text() == "years of work"
+    assert len(list((run / "checkpoints").glob("*.ckpt"))) >= 1
+
+
+def test_a_stored_previous_path_outside_the_folder_is_ignored_without_a_monitor(smoke_shards, tmp_path):
+    """With nothing monitored and ``save_top_k=1`` Lightning removes the previous ``best_model_path``."""
+    thesis = a_thesis(tmp_path)
+    run = tmp_path / "work" / "run"
+    fit_top_k(smoke_shards, run, max_steps=2, save_top_k=1)
+    (saved,) = (run / "checkpoints").glob("*.ckpt")
+    tampered(saved, lambda state: state.update(best_model_path=f"{state['dirpath']}/../../../thesis"))
+    fit_top_k(smoke_shards, run, max_steps=4, ckpt_path=str(saved), save_top_k=1)
+    assert (thesis / "chapter1.tex").read_text() == "years of work"
+
+
+def test_only_files_directly_in_the_checkpoint_folder_are_kept(tmp_path, capsys):
+    folder = tmp_path / "run" / "checkpoints"
+    folder.mkdir(parents=True)
+    (folder / "epoch=0-step=2.ckpt").write_bytes(b"x")
+    (folder / "sub").mkdir()
+    (folder / "link.ckpt").symlink_to(tmp_path)
+    kept = f"{folder}/epoch=0-step=2.ckpt"
+    callback = RunCheckpoint(dirpath=folder, monitor="val/psnr", mode="max", save_top_k=2)
+    callback.load_state_dict(
+        {
+            "dirpath": str(folder),
+            "best_model_score": torch.tensor(3.0),
+            "best_model_path": kept,
+            "best_k_models": {
+                kept: torch.tensor(3.0),
+                f"{folder}/sub": torch.tensor(2.0),
+                f"{folder}/link.ckpt": torch.tensor(1.0),
+                "/etc": torch.tensor(0.5),
+            },
+            "kth_best_model_path": "/etc",
+            "kth_value": torch.tensor(0.5),
+            "last_model_path": f"{folder}/../checkpoints/last.ckpt",
+        }
+    )
+    assert callback.best_k_models == {kept: torch.tensor(3.0)}
+    assert (callback.best_model_path, callback.kth_best_model_path) == (kept, kept)
+    assert callback.last_model_path == ""
+    (line,) = capsys.readouterr().err.splitlines()
+    assert "'/etc'" in line and "and 1 more" in line

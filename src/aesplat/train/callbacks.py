@@ -100,7 +100,13 @@ class RunCheckpoint(ModelCheckpoint):
         saved = state_dict.get("dirpath")
         if saved and self.dirpath and Path(saved) != Path(self.dirpath):
             state_dict = _moved(state_dict, str(saved), str(self.dirpath))
+        if self.dirpath:
+            state_dict = _files_in(state_dict, Path(self.dirpath))
         super().load_state_dict(state_dict)
+        if self.best_k_models:  # the worst kept checkpoint is the next to go, as Lightning would have set it
+            worst = max if self.mode == "min" else min
+            self.kth_best_model_path = worst(self.best_k_models, key=self.best_k_models.get)
+            self.kth_value = self.best_k_models[self.kth_best_model_path]
 
 
 def _moved(state: dict[str, Any], old: str, new: str) -> dict[str, Any]:
@@ -117,6 +123,61 @@ def _moved(state: dict[str, Any], old: str, new: str) -> dict[str, Any]:
     if isinstance(state.get("best_k_models"), dict):
         out["best_k_models"] = {move(k): v for k, v in state["best_k_models"].items()}
     return out
+
+
+# The stored paths that ModelCheckpoint may later delete (a replaced last.ckpt, a checkpoint that fell out of
+# the top k, the previous checkpoint when nothing is monitored) or load (``--ckpt_path best``).
+_STORED_PATHS = ("best_model_path", "kth_best_model_path", "last_model_path")
+
+
+def _files_in(state: dict[str, Any], folder: Path) -> dict[str, Any]:
+    """``state`` keeping only the stored paths that name a file directly inside ``folder``; one warning line
+    names what was dropped.
+
+    A checkpoint is data: Lightning deletes these paths recursively when it replaces or demotes them, and its
+    test for "inside the folder" does not normalise ``..``. A path with ``..``, a link, a folder, or anything
+    that resolves outside ``folder`` is forgotten (as if that checkpoint had never been saved), never deleted.
+    """
+    dropped: list[str] = []
+
+    def keep(path: Any) -> str | None:
+        if path == "" or path is None:
+            return None
+        inside = _file_directly_in(path, folder) if isinstance(path, str) else None
+        if inside is None:
+            dropped.append(str(path))
+        return inside
+
+    out = dict(state)
+    for key in _STORED_PATHS:
+        if key in out:
+            out[key] = keep(out[key]) or ""
+    best_k = out.get("best_k_models")
+    if isinstance(best_k, dict):
+        out["best_k_models"] = {p: v for k, v in best_k.items() if (p := keep(k))}
+    elif best_k is not None:
+        dropped.append(repr(best_k))
+        out["best_k_models"] = {}
+    if dropped:
+        dropped = list(dict.fromkeys(dropped))
+        more = f" and {len(dropped) - 3} more" if dropped[3:] else ""
+        names = ", ".join(repr(p) for p in dropped[:3]) + more
+        where = f"the checkpoint's saved state names paths that are not files in {folder}"
+        print(f"aesplat fit: {where}; ignored, never deleted: {names}", file=sys.stderr)
+    return out
+
+
+def _file_directly_in(path: str, folder: Path) -> str | None:
+    """``folder/NAME`` when ``path`` is that file (or a file not written yet) by name, without ``..`` or a
+    link on the way; else None."""
+    p = Path(path)
+    if "://" in path or ".." in p.parts or p.parent != folder or p.is_symlink():
+        return None
+    if p.exists() and not p.is_file():
+        return None
+    if p.parent.resolve() != folder.resolve():
+        return None
+    return str(folder / p.name)
 
 
 class DataRecord(Callback):
