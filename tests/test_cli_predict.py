@@ -151,6 +151,35 @@ def test_the_image_size_is_never_guessed(ckpt, tmp_path, capsys):
     assert Image.open(tmp_path / "out" / "inputs" / "00_0.png").size == (42, 42)
 
 
+def test_a_config_yaml_that_cannot_be_used_is_named_in_one_line_and_never_runs(ckpt, tmp_path, capsys):
+    """The run's config.yaml is data: a Python tag constructs nothing, and a file YAML cannot parse is named.
+    Without a size in the checkpoint the one line says why the file did not give it; with one, the file is
+    ignored with a line and the prediction goes on."""
+    run = tmp_path / "run"
+    shutil.copytree(ckpt.parent.parent, run)
+    last, config = run / "checkpoints" / "last.ckpt", run / "config.yaml"
+    marker = tmp_path / "ran"
+    config.write_text(f'data: !!python/object/apply:os.system ["touch {marker}"]\n')
+    images = photos(tmp_path / "in")
+    code, line = predict(capsys, "--ckpt", str(last), "--out", str(tmp_path / "out"), *images)
+    assert code == 1 and line == (
+        f"aesplat predict: {last} does not say which image size it was trained at ({config} is ignored: not "
+        "YAML this program reads (could not determine a constructor for the tag "
+        "'tag:yaml.org,2002:python/object/apply:os.system' at line 1)): give --size, the run's data.image_size"
+    )
+    assert not marker.exists() and not (tmp_path / "out").exists()
+
+    config.write_text("data: [1, 2\n")  # cut short
+    torch.save({**torch.load(last, weights_only=True), "aesplat_data": {"image_size": 28}}, last)
+    code = main(["--ckpt", str(last), "--out", str(tmp_path / "out"), "--novel-frames", "2", "--no-progress",
+                 *images])  # fmt: skip
+    err = capsys.readouterr().err
+    why = "not YAML this program reads (did not find expected ',' or ']' at line 2)"
+    ignored = f"aesplat: {config} is ignored: {why}"
+    assert code == 0 and err.splitlines() == [ignored]
+    assert Image.open(tmp_path / "out" / "inputs" / "00_0.png").size == (28, 28)
+
+
 def test_a_later_run_removes_the_staging_folder_of_a_run_killed_outright(tmp_path, capsys):
     from aesplat.predict import _staging_prefix, staged_output
 

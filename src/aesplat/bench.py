@@ -707,7 +707,8 @@ def evaluation_stream(loaded, data_root: str | None, image_size: int | None, con
     if data_root is not None:
         data["root"] = data_root
     if "root" not in data:
-        raise SystemExit("aesplat bench: no config.yaml beside the checkpoint's run; give --data-root DIR")
+        why = loaded.config_problem or "there is no config.yaml beside the checkpoint's run"
+        raise SystemExit(f"aesplat bench: the data set is not known ({why}); give --data-root DIR")
     if image_size is not None:
         data["image_size"] = image_size
     elif loaded.trained_size is not None:

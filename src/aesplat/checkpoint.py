@@ -20,6 +20,7 @@ through here:
 from __future__ import annotations
 
 import dataclasses
+import sys
 import types
 import typing
 from dataclasses import asdict, dataclass
@@ -281,6 +282,7 @@ class LoadedCheckpoint:
     trained_size  the square side the model was trained at (None when neither the checkpoint nor its run says)
     cameras       ``model.cameras`` of the run: ``predicted``, or ``dataset`` (trained with the data set's
                   cameras; its camera head is untrained, so the model needs each view's camera: forward_batch)
+    config_problem  why the config.yaml beside the checkpoint is not used (None: used, or there is none)
     """
 
     model: torch.nn.Module
@@ -290,6 +292,7 @@ class LoadedCheckpoint:
     path: Path
     trained_size: int | None = None
     cameras: str = "predicted"
+    config_problem: str | None = None
 
     @property
     def sh_degree(self) -> int:
@@ -305,9 +308,10 @@ class LoadedCheckpoint:
         """The side the model was trained at; UserError when the checkpoint does not say (it is never guessed:
         the commands ask for the size instead)."""
         if self.trained_size is None:
+            where = self.config_problem or "it is not in its run folder beside the run's config.yaml"
             raise UserError(
-                f"{self.path} does not say which image size it was trained at (it is not in its run folder "
-                "beside the run's config.yaml): give --size, the run's data.image_size"
+                f"{self.path} does not say which image size it was trained at ({where}): give --size, the "
+                "run's data.image_size"
             )
         return self.trained_size
 
@@ -322,14 +326,42 @@ class LoadedCheckpoint:
         return {**self.render["options"], "background": self.background.to(device)}
 
 
-def run_config(ckpt: Path) -> dict | None:
-    """The run's config.yaml: ``aesplat fit`` writes it in the run directory, the checkpoint's grandparent."""
-    from omegaconf import OmegaConf
+def run_config(ckpt: Path) -> tuple[dict | None, str | None]:
+    """The run's config.yaml (``aesplat fit`` writes it in the run directory, the checkpoint's grandparent),
+    or None; and why a config.yaml there cannot be used (None when it can, or when there is none).
 
+    The file is data like the checkpoint: read with the safe YAML loader (a Python tag is refused, nothing
+    runs). One that cannot be read, parsed or resolved, or that is not a mapping with a mapping ``data``
+    section, is not used: what the commands need from it (the trained image size) most checkpoints record
+    themselves, and where one does not the command asks for it by its option.
+    """
     for folder in (ckpt.parent, ckpt.parent.parent):
-        if (folder / "config.yaml").is_file():
-            return OmegaConf.to_container(OmegaConf.load(folder / "config.yaml"), resolve=True)
-    return None
+        path = folder / "config.yaml"
+        if path.is_file():
+            config, problem = _read_run_config(path)
+            return config, problem and f"{path} is ignored: {problem}"
+    return None, None
+
+
+def _read_run_config(path: Path) -> tuple[dict | None, str | None]:
+    """(the config, None), or (None, why it cannot be used)."""
+    import yaml
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        config = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        return None, f"not YAML this program reads ({getattr(err, 'problem', None) or err}{where})"
+    except OmegaConfBaseException as err:
+        return None, f"a value cannot be resolved ({str(err).splitlines()[0][:160]})"
+    except (OSError, UnicodeDecodeError) as err:
+        return None, f"cannot be read ({err})"
+    if not isinstance(config, dict) or not isinstance(config.get("data", {}), dict):
+        return None, "not a run configuration (a mapping with a `data` mapping)"
+    return config, None
 
 
 def trained_image_size(ckpt: dict, data: dict | None) -> int | None:
@@ -374,9 +406,13 @@ def load_checkpoint(
             f"{flag} {path}: its tensors do not fit the network its settings describe ({err})"
         ) from None
     model.to(device).eval()
-    data = (run_config(path) or {}).get("data")
+    config, config_problem = run_config(path)
+    data = (config or {}).get("data")
     render = asdict(RasterizerConfig(**dict(hparams.get("render") or {})))  # every setting, checked
+    trained_size = trained_image_size(ckpt, data)
+    if config_problem and trained_size is not None:  # nothing is lost without it: say so and go on
+        print(f"aesplat: {config_problem}", file=sys.stderr)
     return LoadedCheckpoint(
-        model, net, render, data, path,
-        trained_size=trained_image_size(ckpt, data), cameras=hparams.get("cameras", "predicted"),
+        model, net, render, data, path, trained_size=trained_size, cameras=hparams.get("cameras", "predicted"),
+        config_problem=config_problem,
     )  # fmt: skip
