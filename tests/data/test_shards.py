@@ -511,3 +511,39 @@ def test_long_scenes_convert_whole_or_strided(tmp_path):
         assert torch.all(b.context.index % 3 == 0) and torch.all((b.gap >= 25) & (b.gap <= 45))
         assert torch.equal(b.context.index[:, 1] - b.context.index[:, 0], 3 * b.gap)  # gaps count kept frames
         assert torch.allclose(b.context.extrinsics[:, :, 0, 3], b.context.index.float() * 3.0 / (frames - 1))
+
+
+# Every character a file system allows in a name: a key survives conversion intact, or is refused by name.
+ODD_KEYS = ["room one", "kitchen/2", "ünïcødé-日本", "x" * 300, "line\nbreak", 'a,b"c', "-leading", "..",
+            "CASE", "case"]  # fmt: skip
+
+
+def test_scene_keys_of_any_characters_survive_conversion_or_are_refused_by_name(tmp_path, scene, capsys):
+    """Distinct keys keep their exact text in every sample (evaluation results and the manifest name scenes
+    by it); two scenes whose shard keys would be one, or one key given twice, are refused in one line each."""
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    c2w, k = s.extrinsics.double().numpy(), s.intrinsics.double().expand(8, 3, 3).numpy()
+    keys = [*ODD_KEYS, "room.one", "room_one", "CASE"]  # the last three: shard keys taken, a key given twice
+    scenes = [chunk_entry(key, images, c2w, k) for key in keys]
+    evaluation = {key: {"context": [1, 6], "target": [2, 3, 5]} for key in keys}
+    write_source(tmp_path / "src", scenes[:1], scenes, evaluation)
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=16, min_gap=3, progress=False)
+
+    test = manifest["splits"]["test"]
+    assert test["skips"] == {"duplicate_key": 3}
+    assert set(test["evaluation_samples"]) == set(ODD_KEYS)
+    samples = list(read_tar(next((tmp_path / "out" / "test").glob("*.tar"))))
+    assert sorted(json.loads(raw["meta.json"])["scene"] for _, raw in samples) == sorted(ODD_KEYS)
+    assert len({key for key, _ in samples}) == len(ODD_KEYS)
+    err = capsys.readouterr().err
+    assert "skipped (duplicate_key): 'room.one': its shard key 'room_one' is taken by 'room one'" in err
+    assert "skipped (duplicate_key): 'CASE': its shard key 'CASE' is taken by 'CASE'" in err
+
+    twice = tmp_path / "src2"  # one key in two source files of a split: the conversion stops, naming both
+    write_source(twice, scenes[:1], scenes[:1], {})
+    torch.save(scenes[:1], twice / "train" / "000001.torch")
+    (twice / "train" / "index.json").unlink()  # without an index every chunk of the folder is read
+    with pytest.raises(UserError, match=r"scene key 'room one' is in two source files of the train split "
+                       r"\(000000.torch and 000001.torch\)"):  # fmt: skip
+        convert_dataset(twice, tmp_path / "out2", size=16, min_gap=3, progress=False)

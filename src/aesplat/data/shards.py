@@ -379,6 +379,7 @@ def convert_unit(job: _Job) -> dict[str, Any]:
     skips: Counter[str] = Counter()
     refused: dict[str, list[str]] = {}  # scene key -> [reason, message]
     seen, keys, frames, stated, sources = 0, [], {}, {}, {}
+    taken: dict[str, str] = {}  # shard key -> the scene key that has it
     highlight = masked = 0
     try:
         with ShardWriter(shard) as writer:
@@ -391,6 +392,19 @@ def convert_unit(job: _Job) -> dict[str, Any]:
                     refused[item.key or job.unit.path.name] = [item.reason, item.message]
                     continue
                 seen += 1
+                if not item.key:
+                    skips["bad_key"] += 1
+                    where = f"#{seen} of {job.unit.path.name}"
+                    refused[where] = ["bad_key", f"scene {where} has no key: give it one"]
+                    continue
+                other = taken.get(safe_key(item.key))
+                if other is not None:  # one shard key, one sample: a second would be read into the first
+                    skips["duplicate_key"] += 1
+                    refused[f"{item.key} (again)" if other == item.key else item.key] = [
+                        "duplicate_key", f"{item.key!r}: its shard key {safe_key(item.key)!r} is taken by "
+                        f"{other!r} in the same source file; give each scene a key of its own"]  # fmt: skip
+                    continue
+                taken[safe_key(item.key)] = item.key
                 try:
                     _check(item, job)
                     if job.evaluation:
@@ -591,6 +605,7 @@ def convert_dataset(
             f"cannot write {err.filename or out}: {err.strerror or err}; free space (or fix the "
             "permission) and rerun the same command: finished shards are kept"
         ) from None
+    refuse_repeated_keys(records)
     manifest = _manifest(src, reader, cfg, splits, records, indexes, held, eval_index, val_index)
     try:
         atomic_write(out / "manifest.json", lambda f: f.write(json.dumps(manifest, indent=1).encode()))
@@ -600,6 +615,21 @@ def convert_dataset(
             "same command: finished shards are kept"
         ) from None
     return manifest
+
+
+def refuse_repeated_keys(records: list[dict[str, Any]]) -> None:
+    """One line when one scene key is in two shards of a split: evaluation results, the manifest and the
+    validation hold-out name a scene by its key, so a key must name one scene."""
+    where: dict[tuple[str, str], str] = {}
+    for record in sorted(records, key=lambda r: r["source"]):
+        for key in record["scene_keys"]:
+            first = where.setdefault((record["split"], key), record["source"])
+            if first != record["source"]:
+                raise UserError(
+                    f"scene key {key!r} is in two source files of the {record['split']} split ({first} and "
+                    f"{record['source']}): give each scene a key of its own and convert again (finished "
+                    "shards are kept)"
+                )
 
 
 def _run(jobs: list[_Job], workers: int) -> Iterator[dict[str, Any]]:

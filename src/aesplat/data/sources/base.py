@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from collections.abc import Iterator
@@ -15,9 +16,18 @@ from ..scene import Scene, Skipped
 SPLITS = ("train", "validation", "test")
 
 
+SAFE_KEY_LENGTH = 81  # a tar member name (ustar: 100 bytes) holds the key, a dot and the longest extension
+
+
 def safe_key(text: str) -> str:
-    """A WebDataset key: no dots (they separate the extension) and no path separators."""
-    return re.sub(r"[^A-Za-z0-9_\-]", "_", text)
+    """A WebDataset key: letters, digits, ``-`` and ``_`` (no dots: they separate the extension; no path
+    separators), every other character ``_``; a key longer than :data:`SAFE_KEY_LENGTH` keeps its first 72
+    characters and gets ``_`` and 8 hex digits of its hash."""
+    key = re.sub(r"[^A-Za-z0-9_\-]", "_", text)
+    if len(key) <= SAFE_KEY_LENGTH:
+        return key
+    digest = hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()[:8]
+    return f"{key[: SAFE_KEY_LENGTH - 9]}_{digest}"
 
 
 @dataclass(frozen=True)
