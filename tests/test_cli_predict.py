@@ -180,6 +180,20 @@ def test_a_config_yaml_that_cannot_be_used_is_named_in_one_line_and_never_runs(c
     assert Image.open(tmp_path / "out" / "inputs" / "00_0.png").size == (28, 28)
 
 
+def test_a_photo_name_too_long_for_the_outputs_is_one_line_before_the_model_loads(ckpt, tmp_path, capsys):
+    """``inputs/NN_NAME.png`` adds 7 bytes to the photo's name: a name near the file system's limit once
+    failed only after the prediction, writing its outputs."""
+    images = photos(tmp_path / "in")
+    long = tmp_path / "in" / ("x" * 250 + ".png")
+    Path(images[1]).rename(long)
+    code, line = predict(capsys, "--ckpt", str(ckpt), "--out", str(tmp_path / "out"), images[0], str(long))
+    assert code == 1 and line == (
+        f"aesplat predict: the input image {str(long)!r} makes a 257-byte file name under --out (this file "
+        "system allows 255); rename the photo"
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]
+
+
 def test_a_later_run_removes_the_staging_folder_of_a_run_killed_outright(tmp_path, capsys):
     from aesplat.predict import _staging_prefix, staged_output
 

@@ -665,12 +665,31 @@ def check_options(args: argparse.Namespace) -> None:
         raise UserError(f"--backend {args.backend} is not a renderer: give auto, {', '.join(BACKENDS)}")
 
 
+def check_name_lengths(out: Path, photos: list[str], names: list[str]) -> None:
+    """Refuse, before the model loads, a photo whose outputs' file name (``inputs/NN_NAME.png``, the longest)
+    is longer than the file system under ``out`` allows."""
+    parent = out.resolve().parent
+    while not parent.exists():
+        parent = parent.parent
+    try:
+        limit = os.pathconf(parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        limit = 255
+    for i, (photo, name) in enumerate(zip(photos, names)):
+        length = len(os.fsencode(f"{i:02d}_{name}.png"))
+        if length > limit:
+            raise UserError(f"the input image {photo!r} makes a {length}-byte file name under --out (this file "
+                            f"system allows {limit}); rename the photo")  # fmt: skip
+
+
 def _predict(args: argparse.Namespace) -> int:
     apply_thread_policy(num_workers=0, override=args.threads)
     check_options(args)
     out_dir = Path(args.out)
     inputs = [("--ckpt", args.ckpt), *(("the input image", image) for image in args.images)]
     check_output_dir(out_dir, args.overwrite, inputs)
+    names = [Path(p).stem for p in args.images]
+    check_name_lengths(out_dir, args.images, names)
     exports = parse_formats(args.export) if args.export is not None else []
     device = resolve_device(args.device)
     photos = predict_photos(args.ckpt, args.images, size=args.size, crop=args.crop, device=device)
@@ -678,7 +697,6 @@ def _predict(args: argparse.Namespace) -> int:
     model_degree = loaded.sh_degree
     if args.ply_sh_degree is not None and not 0 <= args.ply_sh_degree <= model_degree:
         raise UserError(f"--ply-sh-degree must be in 0..{model_degree} for this checkpoint")
-    names = [Path(p).stem for p in args.images]
     options = {**loaded.render_options(device), "backend": args.backend}
     with staged_output(out_dir, args.overwrite) as staging:
         write_outputs(
@@ -694,6 +712,6 @@ def _predict(args: argparse.Namespace) -> int:
     for name, i in zip(names, inputs):
         if i.cropped:
             left, top, right, bottom = (round(c) for c in i.crop)
-            print(f"aesplat predict: {name} ({i.source[0]}x{i.source[1]}) was centre-cropped to its pixels "
+            print(f"aesplat predict: {name!r} ({i.source[0]}x{i.source[1]}) was centre-cropped to its pixels "
                   f"x {left}..{right}, y {top}..{bottom} (cameras.json: views[].source)")  # fmt: skip
     return 0

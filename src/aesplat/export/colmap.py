@@ -3,9 +3,16 @@
 Layout (what COLMAP, nerfstudio's ``colmap`` data parser and gsplat's example trainer read)::
 
     DEST/images/NN_NAME.png        the input images as the model saw them
+    DEST/image_names.json          each image's file name -> the view's name (its photo's, in cameras.json)
     DEST/sparse/0/cameras.txt      one PINHOLE camera per image: width, height, fx, fy, cx, cy in pixels
     DEST/sparse/0/images.txt       world-to-camera rotation (quaternion w, x, y, z) and translation per image
     DEST/sparse/0/points3D.txt     one point per Gaussian: centre and base colour, no tracks
+
+COLMAP (and pycolmap, which gsplat's trainer reads with) takes an image's NAME up to the next space,
+nerfstudio's reader splits the line on any whitespace, and every reader ends it at a line break: a photo name
+with whitespace, a line break or another character that is not printable (a byte that is not UTF-8 included)
+is written with each such character replaced by ``_`` (:func:`colmap_file_name`). The view number in front
+keeps every name distinct, and ``image_names.json`` records which photo each file is.
 
 COLMAP uses OpenCV camera axes and puts pixel centres at (u + 0.5, v + 0.5), as this project does, so the
 pixel principal point is the normalised one times the image size. Numbers are written with 17 significant
@@ -14,6 +21,7 @@ digits: the model reads back exactly what was predicted.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +32,14 @@ from .prediction import PredictedScene
 
 def _num(x: float) -> str:
     return f"{float(x):.17g}"
+
+
+def colmap_file_name(index: int, name: str) -> str:
+    """The file name of view ``index``'s image (``name``: its photo's) in a COLMAP export, ``NN_NAME.png``, with
+    each character a COLMAP text model cannot carry in a name (whitespace, line breaks, other characters that
+    are not printable, bytes that are not UTF-8) replaced by ``_``; any other name is kept as it is."""
+    safe = "".join(c if c.isprintable() and not c.isspace() else "_" for c in name)
+    return f"{index:02d}_{safe}.png"
 
 
 def colmap_camera_lines(scene: PredictedScene) -> list[str]:
@@ -61,7 +77,8 @@ def colmap_point_lines(scene: PredictedScene) -> list[str]:
 def write_colmap(scene: PredictedScene, dest: str | Path) -> Path:
     """Write the COLMAP text model and images of ``scene`` into the folder ``dest``; returns ``dest``."""
     dest = Path(dest)
-    names = scene.copy_images(dest / "images")
+    names = scene.copy_images(dest / "images", [colmap_file_name(i, n) for i, n in enumerate(scene.names)])
+    (dest / "image_names.json").write_text(json.dumps(dict(zip(names, scene.names)), indent=2) + "\n")
     model = dest / "sparse" / "0"
     model.mkdir(parents=True, exist_ok=True)
     v, n = scene.num_views, scene.gaussians.num_gaussians
@@ -87,5 +104,5 @@ def write_colmap(scene: PredictedScene, dest: str | Path) -> Path:
         ],
     }
     for name, lines in files.items():
-        (model / name).write_text("\n".join(lines) + "\n")
+        (model / name).write_text("\n".join(lines) + "\n", encoding="utf-8")
     return dest

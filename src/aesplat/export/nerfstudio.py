@@ -6,6 +6,8 @@ Layout (what nerfstudio's ``nerfstudio-data`` parser, ``ns-train splatfacto`` in
     DEST/transforms.json        per frame: file_path, transform_matrix, fl_x, fl_y, cx, cy, w, h
     DEST/sparse_pc.ply          the Gaussian centres with their base colours (``ply_file_path``)
 
+``file_path`` names each image by its file name in ``inputs/`` as it is (JSON carries any name; a byte that is
+not UTF-8 is written as Python's ``\\udcXX`` escape, which Python reads back to the same file).
 ``transform_matrix`` is camera-to-world with OpenGL / Blender camera axes (x right, y up, z backward): this
 project's OpenCV camera-to-world with its y and z columns negated. Intrinsics are in pixels, pixel centres at
 (u + 0.5, v + 0.5) as here. The camera model is ``OPENCV`` with zero distortion, what ``ns-process-data``
@@ -60,5 +62,6 @@ def write_nerfstudio(scene: PredictedScene, dest: str | Path) -> Path:
     dest = Path(dest)
     names = scene.copy_images(dest / "images")
     write_point_cloud(dest / "sparse_pc.ply", scene)
-    (dest / "transforms.json").write_text(json.dumps(transforms_json(scene, names), indent=2) + "\n")
+    text = json.dumps(transforms_json(scene, names), indent=2, allow_nan=False)  # strict JSON, never a bare NaN
+    (dest / "transforms.json").write_text(text + "\n")
     return dest

@@ -19,6 +19,9 @@ The SH basis and the +0.5 colour offset of this project are the reference's, so 
 
 from __future__ import annotations
 
+import re
+import sys
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +30,7 @@ import torch
 from ..errors import MissingFileError, UserError
 from ..geometry import MAX_SH_DEGREE, num_sh_coeffs
 from ..types import Gaussians
+from .prune import drop_non_finite
 
 # The reference 3DGS code and most viewers stop at SH degree 3 (45 f_rest properties).
 VIEWER_MAX_SH_DEGREE = 3
@@ -91,11 +95,43 @@ def write_ply(path: str | Path, gaussians: Gaussians, index: int = 0, sh_degree:
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}
 
 
+def _vertex_count(path: Path, header: list[str]) -> int:
+    """The count of the header's one element, ``element vertex COUNT``; a UserError for any other element, or
+    an element line without a kind or a whole count of 0 or more."""
+    lines = [line for line in header if line.split()[:1] == ["element"]]
+    for line in lines:
+        fields = line.split()
+        if len(fields) != 3 or not re.fullmatch(r"[0-9]+", fields[2]):
+            raise UserError(f"{str(path)!r}: header line '{line.strip()}' is not 'element NAME COUNT' with a "
+                            "whole count of 0 or more; the file is damaged or not a 3DGS PLY")  # fmt: skip
+    kinds = [line.split()[1] for line in lines]
+    if kinds != ["vertex"]:
+        raise UserError(f"{str(path)!r} holds elements {kinds}; a 3DGS PLY holds vertices only")
+    return int(lines[0].split()[2])
+
+
+def _vertex_dtype(path: Path, header: list[str]) -> np.dtype:
+    """The vertex record of the header's ``property TYPE NAME`` lines; a UserError for a line without a name,
+    a type other than float or double, or a name given twice."""
+    props = [line.split() for line in header if line.split()[:1] == ["property"]]
+    if odd := next((p for p in props if len(p) != 3 and p[1:2] != ["list"]), None):
+        raise UserError(f"{str(path)!r}: header line '{' '.join(odd)}' is not 'property TYPE NAME'; the file "
+                        "is damaged or not a 3DGS PLY")  # fmt: skip
+    if odd := next((p for p in props if p[1] not in _PLY_TYPES), None):
+        kind = " ".join(odd[1:])
+        raise UserError(f"{str(path)!r} has property '{kind}'; a 3DGS PLY has float properties only")
+    if twice := next((name for name, n in Counter(p[2] for p in props).items() if n > 1), None):
+        raise UserError(f"{str(path)!r} has property {twice} twice; the file is damaged or not a 3DGS PLY")
+    return np.dtype([(p[2], _PLY_TYPES[p[1]]) for p in props])
+
+
 def read_ply(path: str | Path) -> Gaussians:
     """A binary little-endian 3DGS PLY -> Gaussians [1, N] (sigmoid of the opacity, exp of the scales).
 
     Needs the vertex properties ``x y z f_dc_0..2 opacity scale_0..2 rot_0..3`` and ``f_rest_*`` for SH degree
-    0..4, as float or double. Anything else is refused with a :class:`UserError` naming what is wrong.
+    0..4, as float or double. Anything else, a malformed header or data shorter than the header says is refused
+    with a :class:`UserError` naming what is wrong. Gaussians that hold NaN or Inf (as stored, or once loaded:
+    the exp of a huge log-scale) are dropped, with one line on stderr saying how many; none may be left.
     """
     path = Path(path)
     if not path.is_file():
@@ -105,21 +141,13 @@ def read_ply(path: str | Path) -> Gaussians:
     end = data.find(b"end_header\n")
     if not data.startswith(b"ply\n") or end < 0:
         raise UserError(f"{str(path)!r} is not a PLY file (no 'ply' ... 'end_header' header)")
-    header = data[:end].decode("ascii", errors="replace").splitlines()
+    header = [line for line in data[:end].decode("ascii", errors="replace").splitlines() if line.strip()]
     body = data[end + len(b"end_header\n") :]
     if "format binary_little_endian 1.0" not in header:
         fmt = next((line for line in header if line.startswith("format")), "no format line")
         raise UserError(f"{str(path)!r} is a PLY in '{fmt}'; a 3DGS PLY is binary_little_endian")
-    elements = [line.split() for line in header if line.startswith("element")]
-    if [e[1] for e in elements] != ["vertex"]:
-        kinds = [e[1] for e in elements]
-        raise UserError(f"{str(path)!r} holds elements {kinds}; a 3DGS PLY holds vertices only")
-    count = int(elements[0][2])
-    props = [line.split() for line in header if line.startswith("property")]
-    if any(p[1] not in _PLY_TYPES for p in props):
-        odd = next(" ".join(p[1:]) for p in props if p[1] not in _PLY_TYPES)
-        raise UserError(f"{str(path)!r} has property '{odd}'; a 3DGS PLY has float properties only")
-    dtype = np.dtype([(p[2], _PLY_TYPES[p[1]]) for p in props])
+    count = _vertex_count(path, header)
+    dtype = _vertex_dtype(path, header)
     names = set(dtype.names or ())
     rest = sum(name.startswith("f_rest_") for name in names)
     degree = next((d for d in range(MAX_SH_DEGREE + 1) if 3 * (num_sh_coeffs(d) - 1) == rest), None)
@@ -135,18 +163,24 @@ def read_ply(path: str | Path) -> Gaussians:
         raise UserError(f"{str(path)!r} is truncated: {count} vertices need {count * dtype.itemsize} bytes")
     table = np.frombuffer(body, dtype=dtype, count=count)
 
-    def cols(*keys: str) -> torch.Tensor:  # [N, len(keys)] float32
-        return torch.from_numpy(np.stack([table[k].astype(np.float32) for k in keys], axis=-1))
+    def cols(*keys: str) -> torch.Tensor:  # [N, len(keys)] float32; a value not finite in float32 is NaN
+        with np.errstate(over="ignore", invalid="ignore"):  # a double beyond float32's range: Inf, then NaN
+            values = np.stack([table[k].astype(np.float32) for k in keys], axis=-1)
+        return torch.from_numpy(np.where(np.isfinite(values), values, np.float32(np.nan)))
 
     k = num_sh_coeffs(degree)
     dc = cols("f_dc_0", "f_dc_1", "f_dc_2")  # [N, 3]
     f_rest = cols(*(f"f_rest_{i}" for i in range(3 * (k - 1)))) if k > 1 else torch.zeros(count, 0)
     f_rest = f_rest.reshape(count, 3, k - 1)  # channel-major in the file
     sh = torch.cat([dc[:, None], f_rest.transpose(1, 2)], dim=1)  # [N, K, 3]
-    return Gaussians(
+    gaussians, dropped = drop_non_finite(Gaussians(
         means=cols("x", "y", "z")[None],
         quats=cols("rot_0", "rot_1", "rot_2", "rot_3")[None],
         scales=cols("scale_0", "scale_1", "scale_2").exp()[None],
-        opacities=torch.sigmoid(cols("opacity")[:, 0])[None],
+        opacities=torch.sigmoid(cols("opacity")[:, 0])[None],  # NaN stays NaN, where +-Inf would be 1 or 0
         sh=sh[None],
-    )
+    ))  # fmt: skip
+    if dropped:
+        print(f"aesplat: {str(path)!r}: dropped {dropped:,} of {count:,} Gaussians holding NaN or Inf; "
+              f"{count - dropped:,} left", file=sys.stderr)  # fmt: skip
+    return gaussians

@@ -1,4 +1,5 @@
-"""Fewer Gaussians for less time: keep the most opaque ones, or drop the nearly transparent ones."""
+"""Fewer Gaussians: keep the most opaque ones, drop the nearly transparent ones, or drop those that hold NaN or
+Inf (which no exporter can write and no renderer can draw)."""
 
 from __future__ import annotations
 
@@ -44,3 +45,20 @@ def drop_transparent(gaussians: Gaussians, min_opacity: float) -> Gaussians:
         keep = torch.zeros_like(keep)
         keep[gaussians.opacities[0].argmax()] = True
     return gaussians.apply(lambda t: t[:, keep])
+
+
+def finite_rows(gaussians: Gaussians) -> Tensor:
+    """[B, N] True where every parameter of the Gaussian (centre, rotation, scale, opacity, SH) is finite."""
+    fields = (gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.sh)
+    finite = [torch.isfinite(t) for t in fields]  # [B, N, ...] each
+    return torch.stack([f.flatten(2).all(dim=-1) if f.ndim > 2 else f for f in finite]).all(dim=0)
+
+
+def drop_non_finite(gaussians: Gaussians) -> tuple[Gaussians, int]:
+    """The Gaussians of one scene (B = 1) without those holding NaN or Inf in any parameter, and how many were
+    dropped. May leave none: a caller that needs some says so. All finite: they come back as given."""
+    if gaussians.batch_size != 1:
+        raise ValueError(f"drop_non_finite works on one scene at a time, got a batch of {gaussians.batch_size}")
+    keep = finite_rows(gaussians)[0]  # [N]
+    dropped = int((~keep).sum())
+    return (gaussians.apply(lambda t: t[:, keep]) if dropped else gaussians), dropped

@@ -4,6 +4,11 @@ Three sources: a prediction folder of ``aesplat predict`` (its PLY, cameras and 
 alone (no cameras), or a checkpoint and images (predicted here, nothing written). The Gaussians of a folder or
 a PLY carry the SH bands the PLY holds (``aesplat predict`` writes up to degree 3 unless ``--ply-sh-degree``);
 a prediction made here carries all of the model's.
+
+What is loaded is checked before the server starts, so that no browser session meets it: a PLY or a folder with
+no Gaussians to show is one line; Gaussians holding NaN or Inf are dropped with one line saying how many
+(``read_ply``); a prediction folder's names and links are checked as ``aesplat export`` checks them
+(``read_prediction``). Camera names are sent to the browser as UTF-8 (:func:`shown_name`).
 """
 
 from __future__ import annotations
@@ -60,28 +65,49 @@ class ViewScene:
         return self.gaussians.sh_degree
 
 
+def shown_name(name: str) -> str:
+    """``name`` as text the browser can be sent (UTF-8): a byte of a file name that is not UTF-8, which Python
+    holds as a lone surrogate, is shown as its escape (``\\xff``); any other name is kept as it is."""
+    try:
+        raw = name.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:  # a lone surrogate that stands for no byte (written into cameras.json by hand)
+        return name.encode("utf-8", "backslashreplace").decode("utf-8")
+    return raw.decode("utf-8", "backslashreplace")
+
+
+def _showable(gaussians: Gaussians, ply: Path) -> Gaussians:
+    """``gaussians`` if there is one to show; else a UserError naming the PLY ``ply``."""
+    if gaussians.num_gaussians == 0:
+        raise UserError(f"{str(ply)!r} holds no Gaussians to show (none, or none with finite values); give a "
+                        "PLY that holds some")  # fmt: skip
+    return gaussians
+
+
 def _read_rgb(path: Path) -> np.ndarray:
     with Image.open(path) as image:
         return np.asarray(image.convert("RGB"))
 
 
 def scene_from_path(path: str | Path) -> ViewScene:
-    """A prediction folder or a 3DGS ``.ply`` file; anything else is one UserError."""
+    """A prediction folder or a 3DGS ``.ply`` file; anything else, or one without a Gaussian to show, is one
+    UserError."""
     path = Path(path)
     if path.is_dir():
         pred = read_prediction(path)
+        gaussians = _showable(pred.gaussians, path / "gaussians.ply")
+        size = pred.width, pred.height
         cameras = [
-            ViewCamera(name, _read_rgb(img), pred.extrinsics[i], pred.intrinsics[i], pred.width, pred.height)
+            ViewCamera(shown_name(name), _read_rgb(img), pred.extrinsics[i], pred.intrinsics[i], *size)
             for i, (name, img) in enumerate(zip(pred.names, pred.images))
         ]
-        return ViewScene(pred.gaussians, cameras, pred.novel_extrinsics, pred.novel_intrinsics, pred.background,
+        return ViewScene(gaussians, cameras, pred.novel_extrinsics, pred.novel_intrinsics, pred.background,
                          pred.render_options, source=str(path))  # fmt: skip
     if not path.exists():
         raise MissingFileError(f"{str(path)!r} does not exist; give a prediction folder or a 3DGS .ply file")
     if path.suffix.lower() != ".ply":
         raise UserError(f"{str(path)!r} is neither a prediction folder nor a .ply file")
-    return ViewScene(read_ply(path), [], torch.zeros(0, 4, 4), torch.zeros(0, 3, 3), torch.zeros(3),
-                     source=str(path))  # fmt: skip
+    no_path = torch.zeros(0, 4, 4), torch.zeros(0, 3, 3)
+    return ViewScene(_showable(read_ply(path), path), [], *no_path, torch.zeros(3), source=str(path))
 
 
 def scene_from_checkpoint(
@@ -107,7 +133,7 @@ def scene_from_checkpoint(
     ext, intr = pred.extrinsics.cpu(), pred.intrinsics.cpu()
     height, width = shape
     cameras = [
-        ViewCamera(Path(p).stem, to_uint8(pixels[i]), ext[i], intr[i], width, height)
+        ViewCamera(shown_name(Path(p).stem), to_uint8(pixels[i]), ext[i], intr[i], width, height)
         for i, p in enumerate(images)
     ]
     path_ext, path_int = interpolate_cameras(ext, intr, path_frames)
