@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
@@ -180,8 +181,9 @@ def test_command_prints_its_url_serves_and_stops_on_sigint(prediction):
         ready, _, _ = select.select([proc.stdout], [], [], 60)
         line = proc.stdout.readline() if ready else ""
         assert line.startswith("aesplat view: http://127.0.0.1:"), line
-        url = line.split()[2]
-        with urllib.request.urlopen(url, timeout=10) as response:
+        url = urlsplit(line.split()[2])  # http://127.0.0.1:PORT/KEY/: the page needs the key
+        assert len(url.path.strip("/")) >= 32 and url.path.endswith("/")
+        with urllib.request.urlopen(url.geturl(), timeout=10) as response:
             assert response.status == 200 and b"<html" in response.read().lower()
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
@@ -190,7 +192,7 @@ def test_command_prints_its_url_serves_and_stops_on_sigint(prediction):
             proc.kill()
     assert proc.returncode == 0, err
     assert "aesplat view: stopped" in out
-    assert free_port_closed(int(url.rsplit(":", 1)[1]))
+    assert free_port_closed(url.port)
 
 
 def refusal(argv, capsys) -> str:

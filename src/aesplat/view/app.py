@@ -12,17 +12,31 @@ render mode or camera never changes another's:
 In the exact mode the splats are shown while the camera moves; once it rests for ``REST_S`` seconds the server
 renders the viewpoint with this project's rasterizer (view-dependent SH up to the chosen degree) and shows that
 image in place of the splats until the camera moves again.
+
+Only the viewer's own page may connect (:class:`Gate`): each start draws a random key that the printed URL
+holds (``http://HOST:PORT/KEY/``); the page and its websocket are refused (HTTP 403) without it, and a websocket
+is refused unless its ``Origin`` is the address it connects to, so a page of another site, or of another port
+on this machine, gets nothing even where it knows the key. What a client can make the server render is capped
+(:func:`~aesplat.view.camera.capped_height`, :func:`~aesplat.view.camera.capped_aspect`): exact renders at most
+``--exact-height`` pixels tall, screenshots at most ``EXACT_SCREENSHOT_HEIGHT`` (server-rendered) or
+``SCREENSHOT_HEIGHT`` (browser-rendered), each at most ``MAX_ASPECT`` times as wide as tall, one screenshot at
+a time per tab.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import math
+import secrets
 import socket
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from http import HTTPStatus
+from urllib.parse import urlsplit
 
 import numpy as np
 import torch
@@ -32,13 +46,19 @@ from ..errors import UserError
 from ..export import drop_transparent
 from ..geometry import covariance_from_scale_rot, sh_dc_to_rgb
 from ..predict import to_uint8
-from .camera import Viewpoint, viewpoint_of
+from .camera import Viewpoint, capped_aspect, capped_height, viewpoint_of
 from .exact import render_viewpoint
 from .scene import ViewScene
 
 MODES = ("fast", "exact")
 REST_S = 0.25  # the camera has rested this long: render the exact image
 PATH_FPS = 10.0
+EXACT_SCREENSHOT_HEIGHT = 1080  # the tallest screenshot the server renders (the exact mode)
+SCREENSHOT_HEIGHT = 2160  # the tallest screenshot the server asks the browser for (the fast mode)
+KEY_BYTES = 24  # the key in the URL: 192 random bits, 32 URL-safe characters
+WILDCARD_HOSTS = ("0.0.0.0", "::", "")  # listening on every address: the URL names this machine instead
+NO_KEY = "Forbidden: open the URL that `aesplat view` printed; it holds this viewer's key.\n"
+OTHER_ORIGIN = "Forbidden: only the viewer's own page may open its websocket.\n"
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -52,6 +72,93 @@ def check_port_free(host: str, port: int) -> None:
             sock.bind((host, port))
         except OSError as err:
             raise UserError(f"cannot listen on {host}:{port} ({err.strerror}); give another --port") from None
+
+
+def path_after_key(path: str, key: str) -> str | None:
+    """The rest of a request path that starts with the viewer's key: ``/KEY`` or ``/KEY/REST`` (a query
+    dropped) -> ``/REST``; None when it does not start with the key. Compared in constant time, so that the
+    time of a refusal tells nothing about the key."""
+    first, _, rest = path.partition("?")[0].lstrip("/").partition("/")
+    given = first.encode("utf-8", "surrogateescape")
+    return "/" + rest if secrets.compare_digest(given, key.encode()) else None
+
+
+def same_origin(origin: str | None, host: str | None) -> bool:
+    """Whether a websocket handshake's ``Origin`` (the page that opens it, as the browser names it) is the
+    address the request went to (its ``Host``): true for the viewer's own page, however it was reached (by
+    name, address or a forwarded port), false for a page of another site or of another port on this machine,
+    and for a client that names no origin."""
+    if not origin or not host:
+        return False
+    try:
+        parts = urlsplit(origin)
+    except ValueError:  # not a URL (an unclosed IPv6 bracket)
+        return False
+    return parts.scheme in ("http", "https") and parts.netloc.lower() == host.strip().lower()
+
+
+def single_header(request, name: str) -> str | None:
+    """The value of a header a request holds exactly once, else None."""
+    values = request.headers.get_all(name)
+    return values[0] if len(values) == 1 else None
+
+
+class Gate:
+    """What the server answers to before viser does: every request must start with the viewer's key
+    (:func:`path_after_key`), and a websocket handshake must also come from the viewer's own page
+    (:func:`same_origin`); anything else gets an HTTP 403 and nothing of the scene. The page itself is viser's,
+    served for the path after the key."""
+
+    def __init__(self, key: str) -> None:
+        self.key = key
+        self.installed = False  # wrap() was called: the server viser started answers to this gate
+
+    def wrap(self, serve_page: Callable | None) -> Callable:
+        """The ``process_request`` of websockets' ``serve`` for the server viser starts, given viser's own
+        (which serves the page and lets websocket handshakes through)."""
+        self.installed = True
+
+        def process_request(connection, request):
+            rest = path_after_key(request.path, self.key)
+            if rest is None:
+                return connection.respond(HTTPStatus.FORBIDDEN, NO_KEY)
+            if (single_header(request, "Upgrade") or "").lower() == "websocket":
+                if not same_origin(single_header(request, "Origin"), single_header(request, "Host")):
+                    return connection.respond(HTTPStatus.FORBIDDEN, OTHER_ORIGIN)
+                return None  # the handshake goes on
+            if serve_page is None:
+                return None
+            return serve_page(connection, dataclasses.replace(request, path=rest))
+
+        return process_request
+
+
+_SERVE_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def guarding_handshakes(gate: Gate) -> Iterator[None]:
+    """While the block starts a viser server: the server it starts answers to ``gate`` first.
+
+    viser offers no hook of its own on the opening handshake; it starts its server with websockets' ``serve``,
+    giving it a ``process_request`` (the page). For the block, ``serve`` puts the gate in front of that; the
+    lock keeps two viewers that start at once from taking each other's gate. The caller checks
+    ``gate.installed`` after the block: a viser that starts its server some other way is refused, not served
+    unguarded.
+    """
+    import websockets.asyncio.server as ws_server
+
+    real = ws_server.serve
+
+    def serve(handler, *args, process_request=None, **kwargs):
+        return real(handler, *args, process_request=gate.wrap(process_request), **kwargs)
+
+    with _SERVE_LOCK:
+        ws_server.serve = serve
+        try:
+            yield
+        finally:
+            ws_server.serve = real
 
 
 def framing_distance(
@@ -103,11 +210,20 @@ class Viewer:
         check_port_free(options.host, options.port)
         self.scene = scene
         self.options = options
-        with contextlib.redirect_stdout(io.StringIO()):  # viser's own banner: the command prints the URL
+        self.key = secrets.token_urlsafe(KEY_BYTES)  # a new one each start: a URL seen before opens nothing
+        gate = Gate(self.key)
+        # viser's own banner is dropped: the command prints the URL, key included
+        with guarding_handshakes(gate), contextlib.redirect_stdout(io.StringIO()):
             self.server = viser.ViserServer(host=options.host, port=options.port, label="aesplat view",
                                             verbose=False)  # fmt: skip
+        if not gate.installed:
+            self._stop_server()
+            raise UserError(
+                f"viser {viser.__version__} starts its server in a way aesplat view cannot guard (it would "
+                "serve anyone); install the tested one: pip install viser==1.1.1"
+            )
         if options.port not in (0, self.server.get_port()):  # taken between the check and the start
-            self.server.stop()
+            self._stop_server()
             raise UserError(f"cannot listen on {options.host}:{options.port} (in use); give another --port")
         self.server.scene.set_up_direction("-y")  # the world is view 0's camera frame: y points down
         self.clients: dict[int, ClientSession] = {}
@@ -117,8 +233,12 @@ class Viewer:
 
     @property
     def url(self) -> str:
+        """The address to open, key included; listening on every address (0.0.0.0), under this machine's name,
+        for another machine to open."""
         host = self.options.host
-        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}"
+        if host in WILDCARD_HOSTS:
+            host = socket.gethostname()
+        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}/{self.key}/"
 
     def _connect(self, client) -> None:
         session = ClientSession(self, client)
@@ -138,6 +258,9 @@ class Viewer:
             self.clients.clear()
         for session in sessions:
             session.close()
+        self._stop_server()
+
+    def _stop_server(self) -> None:
         with contextlib.redirect_stdout(io.StringIO()):  # viser's "server stopped"
             self.server.stop()
 
@@ -157,6 +280,7 @@ class ClientSession:
         self._last_move = 0.0
         self._closed = threading.Event()
         self._playing = threading.Event()
+        self._screenshot_busy = threading.Lock()
         self.views = [viewpoint_of(c.extrinsics, c.intrinsics, c.width, c.height) for c in self.scene.cameras]
         self.path = [
             viewpoint_of(e, k, 1, 1) for e, k in zip(self.scene.path_extrinsics, self.scene.path_intrinsics)
@@ -320,28 +444,38 @@ class ClientSession:
         self._playing.clear()
 
     def send_screenshot(self) -> None:
-        """The current view as a PNG download: the exact image in the exact mode, else the browser's render."""
-        camera = self.client.camera
-        if self.mode == "exact":
-            image = to_uint8(self.render_exact(min(camera.image_height, 1080)))
-        else:
-            image = self.client.get_render(camera.image_height, camera.image_width, transport_format="png")[
-                ..., :3
-            ]
-        self.client.send_file_download("aesplat-view.png", png_bytes(image))
+        """The current view as a PNG download: the exact image in the exact mode (at most
+        EXACT_SCREENSHOT_HEIGHT pixels tall), else the browser's render (at most SCREENSHOT_HEIGHT). A click
+        while one is being made is dropped: the one under way answers it, and a burst of clicks cannot queue
+        renders."""
+        if not self._screenshot_busy.acquire(blocking=False):
+            return
+        try:
+            if self.mode == "exact":
+                image = to_uint8(self.render_exact(EXACT_SCREENSHOT_HEIGHT))
+            else:
+                height = capped_height(self.client.camera.image_height, SCREENSHOT_HEIGHT)
+                h, w = self.viewpoint().size(height)
+                image = self.client.get_render(h, w, transport_format="png")[..., :3]
+            self.client.send_file_download("aesplat-view.png", png_bytes(image))
+        finally:
+            self._screenshot_busy.release()
 
     # ------------------------------------------------------------------------------------------- exact mode
 
     def viewpoint(self) -> Viewpoint:
-        """The browser's current viewpoint."""
+        """The browser's current viewpoint; its aspect ratio the canvas's, within :func:`capped_aspect`'s
+        bounds."""
         camera = self.client.camera
+        aspect = capped_aspect(camera.image_width, camera.image_height)
         return Viewpoint(tuple(camera.wxyz.tolist()), tuple(camera.position.tolist()), float(camera.fov),
-                         float(camera.aspect))  # fmt: skip
+                         aspect)  # fmt: skip
 
-    def render_exact(self, height: int | None = None) -> torch.Tensor:
-        """The current viewpoint by this project's rasterizer -> colour [3, H, W]."""
+    def render_exact(self, most: int | None = None) -> torch.Tensor:
+        """The current viewpoint by this project's rasterizer -> colour [3, H, W]: H the browser's canvas
+        height, at most ``most`` (default: the ``exact_height`` option), W = H times the capped aspect ratio."""
         options = self.viewer.options
-        height = height or min(options.exact_height, self.client.camera.image_height)
+        height = capped_height(self.client.camera.image_height, most or options.exact_height)
         return render_viewpoint(self.scene, self.viewpoint(), height, sh_degree=self.sh_degree,
                                 min_opacity=self.min_opacity, backend=options.backend,
                                 device=options.device)  # fmt: skip

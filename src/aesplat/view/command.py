@@ -33,13 +33,15 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--crop", choices=("none", "square"), default="none",
                         help="with --ckpt: as `aesplat predict --crop`")  # fmt: skip
     parser.add_argument("--host", default=defaults.host,
-                        help="address to listen on; 0.0.0.0 shares the viewer with the network")  # fmt: skip
+                        help="address to listen on; 0.0.0.0 shares the viewer with the network (the printed "
+                        "URL, its key included, then opens it from another machine)")  # fmt: skip
     parser.add_argument("--port", type=int, default=defaults.port, help="port (0: any free port)")
     parser.add_argument("--mode", choices=MODES, default=defaults.mode, help="render mode to start in")
     parser.add_argument("--hide-cameras", action="store_true", help="start with the input cameras hidden")
     parser.add_argument("--show-path", action="store_true", help="start with the novel-view path shown")
     parser.add_argument("--exact-height", type=int, default=defaults.exact_height,
-                        help="pixel height of the exact mode's renders (at most the browser's)")  # fmt: skip
+                        help="pixel height of the exact mode's renders (at most the browser's; the width at "
+                        "most 4 times the height)")  # fmt: skip
     parser.add_argument(
         "--device", default="auto", help="where predictions and exact renders run: cpu, cuda, …"
     )
