@@ -4,8 +4,13 @@ folder, values out of range and broken YAML are one line before anything is writ
 its first checkpoint leaves nothing behind, and a fit stopped by a signal saves and exits with 128 + it.
 """
 
+import contextlib
 import os
+import shutil
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -13,7 +18,7 @@ import torch
 
 from aesplat import cli
 from aesplat.train import AESplatModule
-from tests.test_cli_errors import aesplat, common, one_line, shards  # noqa: F401 - the fixture
+from tests.test_cli_errors import REPO, aesplat, common, one_line, shards  # noqa: F401 - the fixture
 from tests.test_predict import write_tiny_checkpoint
 from tests.train.test_run_dir import hold_lock
 
@@ -161,3 +166,83 @@ def test_a_fit_stopped_by_sigterm_saves_where_it_stopped_and_exits_143(shards, c
         f"aesplat fit: stopped by SIGTERM after step 2; saved {last}: resume with --ckpt_path last"
     )
     assert torch.load(last, weights_only=True)["global_step"] == 2
+
+
+def start_fit_held(data: Path, tmp_path: Path, launch: list[str], validation: bool = False):
+    """`aesplat fit` with two data-loader workers, in a process group of its own, behind the ``launch``
+    command (``timeout ...`` or nothing); it holds in step 2 (with ``validation``: in the validation after step
+    4) until it has a stop signal. Returns the process, the run folder and its stderr's file, once the fit
+    holds there."""
+    run, ready, err = tmp_path / "run", tmp_path / "ready", tmp_path / "stderr"
+    overlay = tmp_path / "hold.yaml"
+    overlay.write_text(
+        "trainer:\n  callbacks:\n    - class_path: tests.train.test_signals.HoldUntilStopSignal\n"
+        f"      init_args:\n        ready: {ready}\n        at: {0 if validation else 1}\n"
+        f"        validation: {str(validation).lower()}\n"
+    )
+    argv = [sys.executable, "-m", "aesplat.cli", "fit", *common(data, run), "-c", str(overlay),
+            "--data.num_workers", "2", "--trainer.max_steps", "50", "--last_checkpoint.every_n_train_steps",
+            "40", "--trainer.enable_progress_bar", "false"]  # fmt: skip
+    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONWARNINGS": "ignore"}
+    with open(err, "w") as stderr:
+        proc = subprocess.Popen([*launch, *argv], cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=stderr,
+                                start_new_session=True)  # fmt: skip
+    deadline = time.monotonic() + 600
+    while not ready.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    if not ready.exists():
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        pytest.fail(f"the fit never reached the step it holds in:\n{err.read_text()[-4000:]}")
+    return proc, run, err
+
+
+def group_members(pgid: int) -> list[str]:
+    """The processes (pid and command) still in process group ``pgid``, read from /proc."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if int(fields[2]) == pgid and fields[0] != "Z":
+                found.append(f"{stat.parent.name} {(stat.parent / 'cmdline').read_bytes()[:80]!r}")
+    return found
+
+
+def assert_stopped_and_saved(proc, run: Path, err: Path, step: int) -> None:
+    """The fit exited 143, saying where it stopped, and its last.ckpt holds that step; no process of its group
+    is left."""
+    try:
+        code = proc.wait(timeout=600)
+        left = group_members(proc.pid)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert not left, f"processes of the fit left running: {left}"
+    last = run / "checkpoints" / "last.ckpt"
+    text = err.read_text()
+    assert code == 128 + signal.SIGTERM, text[-4000:]
+    assert "killed by signal" not in text and "Traceback" not in text, text[-4000:]
+    assert text.strip().splitlines()[-1] == (
+        f"aesplat fit: stopped by SIGTERM after step {step}; saved {last}: resume with --ckpt_path last"
+    )
+    assert torch.load(last, weights_only=True)["global_step"] == step
+
+
+@pytest.mark.parametrize("validation", [False, True], ids=["training", "validation"])
+def test_sigterm_to_the_whole_process_group_saves_and_exits_143(shards, tmp_path, validation):  # noqa: F811
+    """What `kill -TERM -PGID`, systemd and SLURM do: every process of the run gets the signal, the data-loader
+    workers (of training and of validation) too. They must outlive it, for the step under way to finish."""
+    proc, run, err = start_fit_held(shards, tmp_path, [], validation)
+    os.killpg(proc.pid, signal.SIGTERM)
+    assert_stopped_and_saved(proc, run, err, step=4 if validation else 2)
+
+
+def test_a_time_limit_of_timeout_saves_and_exits_143(shards, tmp_path):  # noqa: F811
+    """`timeout -s TERM N aesplat fit ...` sends SIGTERM to its whole process group when the time is up
+    (`--preserve-status`: its own status is then the fit's, not 124). The time is up when the fit holds in step
+    2: the test sends `timeout` the SIGALRM by which its own timer tells it so."""
+    if shutil.which("timeout") is None:
+        pytest.skip("no `timeout` command (GNU coreutils) here")
+    proc, run, err = start_fit_held(shards, tmp_path, ["timeout", "--preserve-status", "-s", "TERM", "3600"])
+    os.kill(proc.pid, signal.SIGALRM)
+    assert_stopped_and_saved(proc, run, err, step=2)

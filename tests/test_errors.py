@@ -2,13 +2,26 @@
 exits with 128 + its number, after the cleanups ran."""
 
 import errno
+import functools
+import itertools
 import multiprocessing
 import os
 import signal
+import time
 
 import pytest
+import torch
+from lightning.fabric.utilities.seed import pl_worker_init_function
+from torch.utils.data import DataLoader, IterableDataset
 
-from aesplat.errors import UserError, os_error_line, run_reporting_user_errors, stopping_on_signals
+from aesplat.data.datamodule import DataModule
+from aesplat.errors import (
+    STOP_SIGNALS,
+    UserError,
+    os_error_line,
+    run_reporting_user_errors,
+    stopping_on_signals,
+)
 
 
 def ends(fn, capsys) -> tuple[int, str]:
@@ -68,8 +81,8 @@ def test_a_signal_runs_the_cleanups_and_exits_128_plus_its_number(signum, capsys
 
 
 def test_a_forked_worker_ignores_a_stop_signal_the_main_process_acts_on():
-    """A data-loader worker inherits the handlers: a signal sent to the whole process group (Ctrl-C, SLURM)
-    must leave it running, for the main process to stop it when the step is over."""
+    """A forked worker (of a process pool) inherits the handlers: a signal sent to the whole process group
+    (Ctrl-C, SLURM) must leave it running, for the main process to stop it when its work is over."""
     context = multiprocessing.get_context("fork")
 
     def worker(conn) -> None:
@@ -87,6 +100,70 @@ def test_a_forked_worker_ignores_a_stop_signal_the_main_process_acts_on():
 
     with stopping_on_signals():
         main()
+
+
+class SignalsItself(IterableDataset):
+    """In each data-loader worker: send itself the stop signals (from another process than the main one, as a
+    signal to the whole process group comes), wait until they are taken, and yield its pid."""
+
+    def __iter__(self):
+        for signum in STOP_SIGNALS:
+            os.kill(os.getpid(), signum)
+        deadline = time.monotonic() + 60
+        while set(STOP_SIGNALS) & signal.sigpending() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        yield os.getpid()
+
+
+class Counts(IterableDataset):
+    def __iter__(self):
+        yield from itertools.count()
+
+
+class InitialSeed(IterableDataset):
+    def __iter__(self):
+        yield torch.initial_seed()
+
+
+def test_a_data_loader_worker_outlives_a_stop_signal_sent_to_the_process_group(stop_signals_heeded):
+    """torch sets a SIGTERM handler of its own in each data-loader worker, over the one it inherited, which
+    ends the worker on a SIGTERM from any process but the main one: the main process, which finishes its step
+    and saves, would fail on the lost worker ("DataLoader worker ... killed by signal")."""
+    loader = DataModule(num_workers=2)._loader(SignalsItself())
+    with stopping_on_signals():
+        pids = list(loader)
+    assert len(set(pids)) == 2 and os.getpid() not in pids
+
+
+def test_the_main_process_still_ends_a_data_loader_worker_with_sigterm():
+    """How the main process ends a worker that does not stop when asked, and at exit every worker still
+    running: a SIGTERM of its own, and it waits for the worker to end (an ignored one would hang the exit)."""
+    loader = DataModule(num_workers=2)._loader(Counts())
+    batches = iter(loader)
+    next(batches)
+    for worker in batches._workers:
+        worker.terminate()
+        worker.join(timeout=60)
+    assert [worker.exitcode for worker in batches._workers] == [0, 0]
+
+
+def test_data_loader_workers_are_seeded_as_lightning_seeds_them(monkeypatch):
+    """The workers' ``worker_init_fn`` also seeds them as Lightning's own would after
+    ``seed_everything(workers=True)`` (which ``aesplat fit`` calls): Lightning adds its own only to a DataLoader
+    that has none."""
+    monkeypatch.setenv("PL_SEED_WORKERS", "1")
+    data = DataModule(num_workers=2)
+    data.set_distributed(1, 2)
+    seeds = {}
+    for name, loader in (
+        ("ours", data._loader(InitialSeed())),
+        ("lightning", DataLoader(InitialSeed(), batch_size=None, num_workers=2,
+                                 worker_init_fn=functools.partial(pl_worker_init_function, rank=1))),
+        ("torch", DataLoader(InitialSeed(), batch_size=None, num_workers=2)),
+    ):  # fmt: skip
+        torch.manual_seed(7)  # the workers' base seed comes from here
+        seeds[name] = sorted(loader)
+    assert seeds["ours"] == seeds["lightning"] != seeds["torch"]
 
 
 def test_a_signal_the_process_was_started_to_ignore_stays_ignored():

@@ -12,6 +12,7 @@ keeps its traceback. ``AESPLAT_DEBUG=1`` shows the traceback of user errors too.
 from __future__ import annotations
 
 import errno
+import multiprocessing
 import os
 import signal
 import sys
@@ -24,6 +25,7 @@ from typing import NoReturn, TypeVar
 DEBUG_ENV = "AESPLAT_DEBUG"
 T = TypeVar("T")
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
+_TAKES_SIGNALS = hasattr(signal, "sigwaitinfo")  # a thread can take signals and see their sender (not macOS)
 
 
 class UserError(ValueError):
@@ -98,10 +100,11 @@ def os_error_line(err: OSError) -> str:
 
 
 def in_this_process_only(handler: Callable[[int, object], None]) -> Callable[[int, object], None]:
-    """``handler`` for this process; in a process forked from it later (a data-loader worker, which inherits
-    Python's signal handlers) the signal is ignored: the main process stops its workers itself, and a worker
-    that died on a signal sent to the whole process group (Ctrl-C, SLURM) would break the batch the main
-    process is still waiting for."""
+    """``handler`` for this process; in a process forked from it later (a worker of a process pool, which
+    inherits Python's signal handlers) the signal is ignored: the main process stops its workers itself, and
+    a worker that died on a signal sent to the whole process group (Ctrl-C, SLURM) would break the work the
+    main process is still waiting for. A data-loader worker needs more: torch sets a SIGTERM handler of its
+    own there (:func:`ignore_stop_signals_in_worker`)."""
     pid = os.getpid()
 
     def only_here(signum: int, frame: object) -> None:
@@ -109,6 +112,51 @@ def in_this_process_only(handler: Callable[[int, object], None]) -> Callable[[in
             handler(signum, frame)
 
     return only_here
+
+
+@contextmanager
+def stop_signals_blocked() -> Iterator[None]:
+    """Block the stop signals in this thread while the block runs: the data-loader workers started meanwhile
+    (and every thread they start) begin with them blocked, so that none of their threads takes one before
+    :func:`ignore_stop_signals_in_worker` runs there. A stop signal that comes meanwhile waits for the end of
+    the block."""
+    if not _TAKES_SIGNALS:  # nothing would unblock them in the workers
+        yield
+        return
+    blocked = set(STOP_SIGNALS) - signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)
+
+
+def ignore_stop_signals_in_worker() -> None:
+    """In a data-loader worker (its DataLoader's ``worker_init_fn``): ignore the stop signals, save a SIGTERM
+    from the main process, which ends the worker at once.
+
+    A signal sent to the whole process group (``kill -TERM -PGID``, ``timeout``, ``scancel``, a SLURM time
+    limit, systemd) reaches the workers too. The main process finishes its step and saves; a worker that died
+    of the signal would fail that step ("DataLoader worker ... killed by signal"). The handler a worker
+    inherits (:func:`in_this_process_only`) does not last: before the ``worker_init_fn``, torch gives every
+    worker a SIGTERM handler of its own, in C, that ends it on a SIGTERM from any process but the main one.
+    Nor would ignoring the signals do: the main process ends a worker that does not stop when asked (and, at
+    exit, every worker still running) with a SIGTERM of its own, and waits for it. So the signals stay blocked
+    (the worker starts with them blocked: :func:`stop_signals_blocked`) and a thread takes them, which tells the
+    senders apart as torch's handler does."""
+    if not _TAKES_SIGNALS:
+        return
+    parent = multiprocessing.parent_process()
+    main = parent.pid if parent is not None else os.getppid()
+    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)  # the threads started from here on inherit it
+    threading.Thread(target=_take_stop_signals, args=(main,), name="stop-signals", daemon=True).start()
+
+
+def _take_stop_signals(main: int) -> None:
+    """Take the (blocked) stop signals as they come; end the process on a SIGTERM from ``main``."""
+    while True:
+        info = signal.sigwaitinfo(STOP_SIGNALS)
+        if info.si_signo == signal.SIGTERM and info.si_pid == main:
+            os._exit(0)  # as torch's own handler does: the worker has nothing to clean up
 
 
 def heeded_signals() -> list[int]:

@@ -9,16 +9,19 @@ same by hand. ``state_dict`` / ``load_state_dict`` carry the step (and seed) thr
 
 from __future__ import annotations
 
+import functools
 import logging
+import os
 import warnings
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
+from lightning.fabric.utilities.seed import pl_worker_init_function
 from torch.utils.data import DataLoader
 
-from ..errors import UserError
+from ..errors import UserError, ignore_stop_signals_in_worker, stop_signals_blocked
 from .curriculum import GapCurriculum
 from .manifest import SceneRef, find_shards, has_split, read_manifest, training_scenes
 from .sampler import ContextCount, fixed_pool, scene_seed
@@ -245,12 +248,15 @@ class DataModule(L.LightningDataModule):
         )
 
     def _loader(self, dataset: torch.utils.data.IterableDataset, on_epoch_start=None) -> DataLoader:
-        """Workers batch the samples themselves (``batch_size=None``); ``on_epoch_start`` runs in the main
-        process each time an iteration begins."""
+        """Workers batch the samples themselves (``batch_size=None``) and outlive a stop signal sent to the
+        whole process group (:func:`start_worker`); ``on_epoch_start`` runs in the main process each time an
+        iteration begins."""
         workers = self.num_workers
         options = {"batch_size": None, "num_workers": workers, "persistent_workers": workers > 0}
+        if workers:
+            options["worker_init_fn"] = functools.partial(start_worker, rank=self.rank)
         if on_epoch_start is None:
-            return DataLoader(dataset, **options)
+            return _WorkersLoader(dataset, **options)
         return _EpochStartLoader(on_epoch_start, dataset, **options)
 
     def epoch_length(self) -> int:
@@ -358,7 +364,28 @@ class DataModule(L.LightningDataModule):
         return self._loader(self.eval_dataset("test"))
 
 
-class _EpochStartLoader(DataLoader):
+def start_worker(worker_id: int, rank: int = 0) -> None:
+    """Every DataLoader worker's ``worker_init_fn``: ignore the stop signals, so that a signal sent to the
+    whole process group leaves the step under way to finish and save
+    (:func:`aesplat.errors.ignore_stop_signals_in_worker`); then seed the worker as Lightning does after
+    ``seed_everything(workers=True)`` (as ``aesplat fit`` calls it), which it does itself only for a
+    DataLoader without a ``worker_init_fn``."""
+    ignore_stop_signals_in_worker()
+    if int(os.environ.get("PL_SEED_WORKERS", "0")):
+        pl_worker_init_function(worker_id, rank)
+
+
+class _WorkersLoader(DataLoader):
+    """A DataLoader that starts its workers with the stop signals blocked (:func:`start_worker` then takes
+    them there): no thread of a worker, not even one started before its ``worker_init_fn``, ever runs torch's
+    SIGTERM handler."""
+
+    def _get_iterator(self):
+        with stop_signals_blocked():  # the workers are started here
+            return super()._get_iterator()
+
+
+class _EpochStartLoader(_WorkersLoader):
     """A DataLoader that calls ``on_epoch_start`` in the main process each time an iteration (an epoch)
     starts, before any worker begins the epoch's stream."""
 

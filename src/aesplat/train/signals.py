@@ -6,7 +6,9 @@ under way finishes, every rank agrees to stop at the same step, ``last.ckpt`` is
 (``aesplat.train.callbacks.RunCheckpoint``) and the fit ends; ``aesplat fit`` then exits with 128 + the
 signal's number, so ``aesplat fit … && aesplat test …`` never takes a stopped run for a finished one. A second
 stop signal stops at once, without saving. (Lightning's own SIGTERM handling stops without a checkpoint and
-exits 0; it is replaced while training runs.)
+exits 0; it is replaced while training runs.) A signal sent to the whole process group or job reaches the
+data-loader workers too: they ignore it (``aesplat.errors.ignore_stop_signals_in_worker``), so the step under
+way can finish.
 
 **Requeue** (SIGUSR1 under SLURM, ``#SBATCH --signal=SIGUSR1@90``): Lightning's SLURM handler (write
 ``hpc_ckpt_N.ckpt``, ``scontrol requeue``) would run wherever the signal lands: in the middle of a step the
