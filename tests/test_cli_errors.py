@@ -241,3 +241,85 @@ def test_a_value_the_model_refuses_is_one_line(shards, capsys, tmp_path):
         "aesplat fit: invalid configuration: unknown model size 'huge'; choose one of tiny, base, large"
     )
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("command", ["test", "validate"])
+def test_more_targets_than_the_samples_carry_is_refused_before_evaluating(command, shards, checkpoints, capsys,
+                                                                          tmp_path):  # fmt: skip
+    """The samples carry 3 targets: asking for 5 would skip every one of them as unusable."""
+    run_dir = tmp_path / "run"
+    extra = ["--data.validate_on_test", "true"] if command == "validate" else []
+    code, err = aesplat(capsys, command, *common(shards, run_dir), "--ckpt_path", str(checkpoints["last"]),
+                        "--data.eval_num_target_views", "5", *extra)  # fmt: skip
+    assert code == 1 and one_line(err) == (
+        f"aesplat {command}: data.eval_num_target_views 5: 1 of the 1 samples of the test shards in {shards} "
+        "carry fewer targets (from 3 to 3); give at most 3, or leave it unset to evaluate every target"
+    )
+    assert not run_dir.exists()
+    code, err = aesplat(capsys, command, *common(shards, run_dir), "--ckpt_path", str(checkpoints["last"]),
+                        "--data.eval_num_target_views", "0", *extra)  # fmt: skip
+    assert code == 1 and one_line(err) == (
+        f"aesplat {command}: invalid configuration: data.eval_num_target_views = 0: it must be 1 or more (or "
+        "unset: every target)"
+    )
+    assert not run_dir.exists()
+
+
+def test_an_evaluation_of_nothing_fails_and_points_no_latest_link(shards, checkpoints, tmp_path):
+    """Shards whose manifest does not count the targets: every sample is skipped while evaluating, and the
+    command must say so and fail, never exit 0 with an empty summary behind ``test-latest``."""
+    root = tmp_path / "shards"
+    shutil.copytree(shards, root)
+    manifest = json.loads((root / "manifest.json").read_text())
+    del manifest["splits"]["test"]["evaluation_samples"]
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    run_dir = tmp_path / "run"
+    args = ["test", *common(root, run_dir), "--ckpt_path", str(checkpoints["last"]),
+            "--data.eval_num_target_views", "5"]  # fmt: skip
+    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONWARNINGS": "ignore"}
+    proc = subprocess.run([sys.executable, "-m", "aesplat.cli", *args], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    code, err = proc.returncode, proc.stderr
+    lines = [line for line in err.splitlines() if line.startswith("aesplat test:")]
+    assert code == 1 and "Traceback" not in err, err
+    assert lines == ["aesplat test: evaluated no scene: every sample was skipped (too_few_targets: 1); see the "
+                     "warnings above for each sample's reason"]  # fmt: skip
+    assert not (run_dir / "test-latest").exists() and not list(run_dir.glob("test-*/summary.json"))
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--data.train_batches_per_epoch", "0"], "data.train_batches_per_epoch = 0: it must be 1 or more "
+         "batches"),
+        (["--data.seed=-1"], "data.seed = -1: it must be a seed of 0 or more"),
+        (["--data.eval_num_target_views", "0"], "data.eval_num_target_views = 0: it must be 1 or more (or "
+         "unset: every target)"),
+        (["--trainer.accumulate_grad_batches", "2"], "trainer.accumulate_grad_batches = 2: it must be 1: the "
+         "module steps its optimizer itself once per batch; raise data.batch_size instead"),
+        (["--trainer.val_check_interval", "0"], "trainer.val_check_interval = 0: it must be 1 or more steps, "
+         "or a fraction of an epoch in (0, 1]"),
+        (["--trainer.log_every_n_steps", "0"], "trainer.log_every_n_steps = 0: it must be 1 or more steps"),
+    ],
+)  # fmt: skip
+def test_values_that_failed_after_the_model_was_built_are_one_line(shards, capsys, tmp_path, flags, message):
+    """Each of these once stopped with a traceback from Lightning or a data-loader worker."""
+    run = tmp_path / "run"
+    code, err = aesplat(capsys, "fit", *common(shards, run), *flags)
+    assert code == 1 and one_line(err, after_start=True) == f"aesplat fit: invalid configuration: {message}"
+    assert not run.exists()
+
+
+def test_a_trainer_value_lightning_refuses_is_one_line(shards, tmp_path):
+    """Lightning's own refusal (here: zero devices) is the one line, not its traceback (a fresh process: its
+    log handlers are its own)."""
+    run = tmp_path / "run"
+    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONWARNINGS": "ignore"}
+    args = ["fit", *common(shards, run), "--trainer.devices", "0", "--seed_everything", "false"]
+    proc = subprocess.run([sys.executable, "-m", "aesplat.cli", *args], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 1 and one_line(proc.stderr, after_start=True) == (
+        "aesplat fit: invalid configuration: trainer: `Trainer(devices='0')` value is not a valid input using "
+        "cpu accelerator."
+    )
+    assert not run.exists()

@@ -77,6 +77,7 @@ def _lightning_cli():
     from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
     from lightning.pytorch.loggers import WandbLogger
     from lightning.pytorch.plugins.io import CheckpointIO
+    from lightning.pytorch.utilities.exceptions import MisconfigurationException
 
     from aesplat.checkpoint import checked_hparams, checkpoint_sections, read_checkpoint, resolve_ckpt_path
     from aesplat.config_checks import check_config
@@ -275,7 +276,10 @@ def _lightning_cli():
             plugins = list(plugins) if isinstance(plugins, (list, tuple)) else [plugins]
             if not any(isinstance(p, CheckpointIO) for p in plugins):  # checkpoints written whole, read safely
                 kwargs["plugins"] = [*plugins, AtomicCheckpointIO()]
-            trainer = super().instantiate_trainer(**kwargs)
+            try:
+                trainer = super().instantiate_trainer(**kwargs)
+            except MisconfigurationException as err:  # a trainer value Lightning refuses: devices, ...
+                raise UserError(f"invalid configuration: trainer: {str(err).strip().splitlines()[0]}") from None
             self.signals = SignalsAtStepBoundary()  # stop and SLURM requeue between steps only
             trainer.callbacks += [self.signals, DataRecord()]
             return trainer
@@ -373,7 +377,7 @@ def launching_process() -> bool:
 def check_inputs(command: str, cfg, resuming: bool = False) -> None:
     """Every input a run needs, checked before the trainer, wandb or the model start (one line each).
     ``resuming``: ``--ckpt_path`` was given (``last`` with nothing to resume from included)."""
-    from aesplat.data.datamodule import find_shards, validation_split
+    from aesplat.data.datamodule import check_target_count, find_shards, validation_split
     from aesplat.model.weights import read_torch_file
     from aesplat.train.run_dir import run_artifacts
 
@@ -383,7 +387,9 @@ def check_inputs(command: str, cfg, resuming: bool = False) -> None:
         find_shards(cfg.data.root, "train")
         if cfg.trainer.get("limit_val_batches") != 0 and cfg.trainer.get("check_val_every_n_epoch") is not None:
             # validation runs on the validation split; on the test split only when data.validate_on_test asks
-            find_shards(cfg.data.root, validation_split(cfg.data.root, cfg.data.get("validate_on_test", False)))
+            split = validation_split(cfg.data.root, cfg.data.get("validate_on_test", False))
+            find_shards(cfg.data.root, split)
+            check_target_count(cfg.data.root, split, cfg.data.get("eval_num_target_views"))
         held = run_artifacts(run_dir) if launching_process() else []
         if held and ckpt_path is None and not resuming and not cfg.overwrite:
             raise UserError(
@@ -391,9 +397,12 @@ def check_inputs(command: str, cfg, resuming: bool = False) -> None:
                 "last, give a new --trainer.default_root_dir, or --overwrite to delete it and start afresh"
             )
     elif command == "validate":  # the split validation runs on, as fit's validation
-        find_shards(cfg.data.root, validation_split(cfg.data.root, cfg.data.get("validate_on_test", False)))
+        split = validation_split(cfg.data.root, cfg.data.get("validate_on_test", False))
     else:
-        find_shards(cfg.data.root, cfg.data.get("test_split", "test"))
+        split = cfg.data.get("test_split", "test")
+    if command != "fit":
+        find_shards(cfg.data.root, split)
+        check_target_count(cfg.data.root, split, cfg.data.get("eval_num_target_views"))
     weights = cfg.model.net.get("weights") if cfg.model.get("net") else None
     if weights:
         read_torch_file(weights, "--model.net.weights")

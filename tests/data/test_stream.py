@@ -445,6 +445,38 @@ def test_highlight_is_none_without_masks_and_mixed_batches_are_an_error(syntheti
         collate([with_mask, bare])
 
 
+def test_eval_batches_group_samples_by_their_number_of_targets(synthetic_shards, tmp_path):
+    """Two of the five samples carry 2 targets, the others 3: with eval_batch_size 2 each sample is evaluated
+    once, in batches of one count (before, the first mixed batch stopped the evaluation)."""
+    shutil.copytree(synthetic_shards, tmp_path / "shards")
+    root = tmp_path / "shards"
+    shortened, seen = set(), 0
+    for shard in sorted((root / "test").glob("*.tar")):
+        samples = []
+        for key, raw in read_tar(shard):
+            seen += 1
+            if seen in (2, 3):  # the first batch mixes 3 and 2 targets
+                meta = json.loads(raw["meta.json"])
+                row = len(meta["context"]) + 2  # camera rows: context, targets, extra frames
+                meta["target"] = meta["target"][:2]
+                raw = {k: v for k, v in raw.items() if not k.startswith("tgt2.")}
+                raw["meta.json"] = json.dumps(meta).encode()
+                for name in ("extrinsics.npy", "intrinsics.npy"):
+                    out = io.BytesIO()
+                    np.save(out, np.delete(np.load(io.BytesIO(raw[name])), row, axis=0))
+                    raw[name] = out.getvalue()
+                shortened.add(meta["scene"])
+            samples.append((key, raw))
+        write_tar(shard, samples)
+    targets = {}
+    for batch in module(root, eval_batch_size=2).test_dataloader():
+        for scene in batch.scene:
+            assert scene not in targets
+            targets[scene] = batch.target.num_views
+    assert len(targets) == 5 and {s for s, n in targets.items() if n == 2} == shortened
+    assert set(targets.values()) == {2, 3}
+
+
 # ------------------------------------------------------------------------------------- old and foreign shards
 
 

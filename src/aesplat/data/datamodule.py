@@ -23,7 +23,7 @@ from torch.utils.data import DataLoader
 
 from ..errors import UserError, ignore_stop_signals_in_worker, stop_signals_blocked
 from .curriculum import GapCurriculum
-from .manifest import SceneRef, find_shards, has_split, read_manifest, training_scenes
+from .manifest import SceneRef, SplitRecord, find_shards, has_split, read_manifest, training_scenes
 from .sampler import ContextCount, fixed_pool, scene_seed
 from .stream import (
     POOL_TARGETS,
@@ -129,6 +129,9 @@ class DataModule(L.LightningDataModule):
                             "data.num_context_views a number, not a range")  # fmt: skip
         if test_split not in TEST_SPLITS:
             raise UserError(f"data.test_split must be one of {', '.join(TEST_SPLITS)}, got {test_split!r}")
+        if eval_num_target_views is not None and eval_num_target_views < 1:
+            raise UserError(f"data.eval_num_target_views must be >= 1 (or unset: every target), got "
+                            f"{eval_num_target_views}")  # fmt: skip
         if eval_transfer_scale < 1:
             raise UserError(f"data.eval_transfer_scale must be >= 1 (1: off), got {eval_transfer_scale}")
         self.test_split = test_split
@@ -346,6 +349,7 @@ class DataModule(L.LightningDataModule):
                 f"views, not {k}: convert again with `python data_prep/to_shards.py --src SRC --out "
                 f"{self.root} --eval-context-views {k}`"
             )
+        check_target_count(self.root, folder, self.eval_num_target_views, record)
         return EvalStream(shards, self._config(False), self.rank, self.world_size, counters)
 
     def train_dataloader(self) -> DataLoader:
@@ -396,6 +400,25 @@ class _EpochStartLoader(_WorkersLoader):
     def __iter__(self):
         self.on_epoch_start()
         return super().__iter__()
+
+
+def check_target_count(root: str | Path, folder: str, want: int | None, record: SplitRecord | None = None):
+    """Refuse ``data.eval_num_target_views`` ``want`` above what some sample of split ``folder`` carries (the
+    manifest counts its samples' targets; ``record``: that split's record, when already read): those samples
+    would be skipped, and the evaluation would cover other scenes than it says, or none."""
+    if want is None:
+        return
+    if record is None:
+        manifest = read_manifest(root)
+        record = None if manifest is None else manifest.splits.get(folder)
+    counts = {} if record is None else record.target_counts
+    short = sum(n for targets, n in counts.items() if targets < want)
+    if short:
+        raise UserError(
+            f"data.eval_num_target_views {want}: {short} of the {sum(counts.values())} samples of the {folder} "
+            f"shards in {root} carry fewer targets (from {min(counts)} to {max(counts)}); give at most "
+            f"{min(counts)}, or leave it unset to evaluate every target"
+        )
 
 
 def validation_split(root: str | Path, validate_on_test: bool = False) -> str:

@@ -48,11 +48,13 @@ class ShardRecord:
 @dataclass(frozen=True)
 class SplitRecord:
     """One split: ``scenes`` (whole scenes, training) or ``samples`` (deterministic samples), its shards, and
-    for evaluation splits the largest number of context views its samples carry contexts for."""
+    for evaluation splits the largest number of context views its samples carry contexts for and how many of
+    its samples carry each number of targets (``{3: 12}``; empty when the manifest does not say)."""
 
     layout: str
     shards: list[ShardRecord]
     context_views: int = 2
+    target_counts: dict[int, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -88,7 +90,13 @@ def _split(path: Path, name: str, entry: Any, version: int) -> SplitRecord:
         if not isinstance(frames, dict) or not all(isinstance(v, int) for v in frames.values()):
             raise _damaged(path, f"split {name!r}: shard {item['shard']} has malformed scene_frames")
         shards.append(ShardRecord(item["shard"], item.get("sha256"), int(item.get("samples", 0)), frames))
-    return SplitRecord(layout, shards, int(entry.get("context_views", 2)) if version >= 2 else 2)
+    samples = entry.get("evaluation_samples") if version >= 2 else None
+    targets: dict[int, int] = {}
+    for sample in samples.values() if isinstance(samples, dict) else ():
+        if not isinstance(sample, dict) or not isinstance(sample.get("target"), list):
+            raise _damaged(path, f"split {name!r} lists an evaluation sample without targets")
+        targets[len(sample["target"])] = targets.get(len(sample["target"]), 0) + 1
+    return SplitRecord(layout, shards, int(entry.get("context_views", 2)) if version >= 2 else 2, targets)
 
 
 def read_manifest(root: str | Path) -> Manifest | None:

@@ -282,6 +282,10 @@ class NoContext(ValueError):
     """An evaluation sample that carries no context of the evaluated count (shards made for fewer views)."""
 
 
+class TooFewTargets(ValueError):
+    """An evaluation sample with fewer targets than ``data.eval_num_target_views`` asks for."""
+
+
 def decode_evaluation_sample(raw: dict[str, bytes], cfg: StreamConfig) -> Example:
     """An evaluation example: the sample's context of ``cfg.context_views`` views (its index's own, or the
     k-view context the shards state), every target or the first ``num_target_views``. ``NoContext`` when the
@@ -299,7 +303,7 @@ def decode_evaluation_sample(raw: dict[str, bytes], cfg: StreamConfig) -> Exampl
                         f"converted with --eval-context-views below {k})")  # fmt: skip
     want = len(target) if cfg.num_target_views is None else cfg.num_target_views
     if len(target) < want:
-        raise ValueError(f"sample has {len(target)} targets, the data module wants {want}")
+        raise TooFewTargets(f"it has {len(target)} targets, data.eval_num_target_views asks for {want}")
     targets = target[:want]
     views = [*chosen, *targets]
     extrinsics, intrinsics = _cameras(raw, len(rows))
@@ -593,15 +597,20 @@ class EvalStream(_ShardStream):
         except NoContext as e:
             self._count("no_context_views")
             log.warning("skipping evaluation sample %s in %s: %s (counted in no_context_views)", key, shard, e)
+        except TooFewTargets as e:
+            self._count("too_few_targets")
+            log.warning("skipping evaluation sample %s in %s: %s (counted in too_few_targets)", key, shard, e)
         except Exception as e:  # noqa: BLE001 - one bad sample must never stop an evaluation
             self._count("corrupt_samples")
             log.warning("skipping corrupt sample %s in %s: %s (counted in corrupt_samples)", key, shard, e)
         return None
 
     def __iter__(self) -> Iterator[BatchedExample]:
+        """Batches of ``batch_size`` samples that share their numbers of context and target views and whether
+        they carry highlight masks (a batch is one tensor); each group's last batch may be smaller."""
         wid, nw = _worker()
         shards, modulus, me = self.splits(wid, nw)
-        batch: list[Example] = []
+        pending: dict[tuple[int, int, bool], list[Example]] = {}
         i = -1
         for shard in shards:
             for key, raw in self._samples(shard):
@@ -611,11 +620,13 @@ class EvalStream(_ShardStream):
                 example = self._decode(shard, key, raw)
                 if example is None:
                     continue
+                kind = (example.num_context, example.images.shape[0] - example.num_context,
+                        example.highlight is not None)  # fmt: skip
+                batch = pending.setdefault(kind, [])
                 batch.append(example)
                 if len(batch) == self.cfg.batch_size:
-                    yield collate(batch)
-                    batch = []
-        if batch:
+                    yield collate(pending.pop(kind))
+        for batch in pending.values():
             yield collate(batch)
 
 

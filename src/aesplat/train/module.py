@@ -14,6 +14,7 @@ advance with the batch; ``SkipGuard`` explains the first such step and stops a r
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import asdict
 from pathlib import Path
 
@@ -24,6 +25,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 from torchmetrics import MeanMetric
 
+from aesplat.errors import UserError
 from aesplat.model import (
     CAMERA_SOURCES,
     CameraSource,
@@ -312,7 +314,7 @@ class AESplatModule(LightningModule):
             if len(self._test_rows) <= self.eval_cfg.num_sample_renders:
                 grid = visual_grid(batch.context.images[i : i + 1], batch.target.images[i : i + 1],
                                    rendered.color[i : i + 1], rendered.depth[i : i + 1])  # fmt: skip
-                save_image(grid, self.test_output_dir / "renders" / f"{_safe(row['scene'])}.png")
+                save_image(grid, self.test_output_dir / "renders" / render_name(row["scene"]))
         for key, values in metrics.items():
             if key not in _METRIC_KEYS:  # highlight metrics (NaN for diffuse scenes) go to the CSV only
                 continue
@@ -327,9 +329,18 @@ class AESplatModule(LightningModule):
             gathered: list[list[dict]] = [[] for _ in range(torch.distributed.get_world_size())]
             torch.distributed.all_gather_object(gathered, rows)
             rows = [row for part in gathered for row in part]
+        if not rows:  # every rank alike: an evaluation of nothing must not pass for a result
+            raise UserError(f"evaluated no scene: every sample was skipped ({self._test_skips()}); see the "
+                            "warnings above for each sample's reason")  # fmt: skip
         if self.trainer.is_global_zero:
             summary = write_results(rows, self.test_output_dir, self.lpips_unavailable, self.cameras)
             print(f"wrote {len(rows)} scenes to {self.test_output_dir}: {summary['metrics']}")
+
+    def _test_skips(self) -> str:
+        """The data module's test-split skip counters that are not zero, e.g. ``too_few_targets: 4``."""
+        counts = getattr(self.trainer.datamodule, "data_errors", dict)()
+        named = [f"{k.split('/', 1)[1]}: {v}" for k, v in counts.items() if k.startswith("test/") and v]
+        return ", ".join(named) or "no sample in the split"
 
     @property
     def skipped_steps(self) -> int:
@@ -410,5 +421,13 @@ def context_view_counts(datamodule: object) -> list[int]:
     return []
 
 
-def _safe(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+def render_name(scene: str) -> str:
+    """The file name of a scene's render grid: the scene key itself when it is a plain, short, lower-case
+    name; else its letters, digits, ``-`` and ``_`` (at most 80) and ``~`` with 8 hex digits of its hash, so
+    that keys that differ only in other characters, in case (a case-insensitive file system) or beyond the
+    80th character get files of their own."""
+    plain = "".join(c if c.isascii() and (c.isalnum() or c in "-_.") else "_" for c in scene)
+    if plain == scene.lower() and 0 < len(scene) <= 120 and not scene.startswith("."):
+        return f"{scene}.png"
+    digest = hashlib.sha256(scene.encode("utf-8", "surrogateescape")).hexdigest()[:8]
+    return f"{plain.lstrip('.')[:80]}~{digest}.png"
