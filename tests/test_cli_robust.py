@@ -168,11 +168,12 @@ def test_a_fit_stopped_by_sigterm_saves_where_it_stopped_and_exits_143(shards, c
     assert torch.load(last, weights_only=True)["global_step"] == 2
 
 
-def start_fit_held(data: Path, tmp_path: Path, launch: list[str], validation: bool = False):
+def start_fit_held(data: Path, tmp_path: Path, launch: list[str], validation: bool = False,
+                   wandb: bool = False):  # fmt: skip
     """`aesplat fit` with two data-loader workers, in a process group of its own, behind the ``launch``
     command (``timeout ...`` or nothing); it holds in step 2 (with ``validation``: in the validation after step
-    4) until it has a stop signal. Returns the process, the run folder and its stderr's file, once the fit
-    holds there."""
+    4) until it has a stop signal; with ``wandb``, logging to an offline wandb run. Returns the process, the
+    run folder and its stderr's file, once the fit holds there."""
     run, ready, err = tmp_path / "run", tmp_path / "ready", tmp_path / "stderr"
     overlay = tmp_path / "hold.yaml"
     overlay.write_text(
@@ -183,7 +184,9 @@ def start_fit_held(data: Path, tmp_path: Path, launch: list[str], validation: bo
     argv = [sys.executable, "-m", "aesplat.cli", "fit", *common(data, run), "-c", str(overlay),
             "--data.num_workers", "2", "--trainer.max_steps", "50", "--last_checkpoint.every_n_train_steps",
             "40", "--trainer.enable_progress_bar", "false"]  # fmt: skip
-    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONWARNINGS": "ignore"}
+    if wandb:
+        argv += ["--trainer.logger", "true", "--wandb.mode", "offline"]
+    env = {**os.environ, "WANDB_MODE": "offline" if wandb else "disabled", "PYTHONWARNINGS": "ignore"}
     with open(err, "w") as stderr:
         proc = subprocess.Popen([*launch, *argv], cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=stderr,
                                 start_new_session=True)  # fmt: skip
@@ -246,3 +249,27 @@ def test_a_time_limit_of_timeout_saves_and_exits_143(shards, tmp_path):  # noqa:
     proc, run, err = start_fit_held(shards, tmp_path, ["timeout", "--preserve-status", "-s", "TERM", "3600"])
     os.kill(proc.pid, signal.SIGALRM)
     assert_stopped_and_saved(proc, run, err, step=2)
+
+
+def test_sigterm_to_every_process_of_a_job_wandb_included_saves_and_exits_143(shards, tmp_path):  # noqa: F811
+    """What `scancel` and a SLURM time limit do to a job that logs to wandb: SIGTERM reaches wandb's service
+    process too (it runs in a session of its own, so a process group signal misses it; a job's does not). The
+    next log then fails; that once stopped the fit in the middle of the step, with nothing saved."""
+    proc, run, err = start_fit_held(shards, tmp_path, [], wandb=True)
+    stats = Path("/proc").glob("[0-9]*/stat")
+    service = [p.parent.name for p in stats if _parent_and_name(p) == (proc.pid, True)]
+    assert service, "the fit started no wandb service process"
+    for pid in service:
+        os.kill(int(pid), signal.SIGTERM)
+    os.killpg(proc.pid, signal.SIGTERM)
+    assert_stopped_and_saved(proc, run, err, step=2)
+    lines = err.read_text().splitlines()
+    assert any(line.startswith("aesplat fit: wandb stopped taking this run's logs (") for line in lines)
+
+
+def _parent_and_name(stat: Path) -> tuple[int, bool] | None:
+    """(parent pid, whether the process is wandb's) from a /proc/PID/stat file; None once it is gone."""
+    with contextlib.suppress(OSError, IndexError, ValueError):
+        name, rest = stat.read_text().split("(", 1)[1].rsplit(")", 1)
+        return int(rest.split()[1]), name.startswith("wandb")
+    return None

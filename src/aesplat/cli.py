@@ -75,7 +75,6 @@ def _lightning_cli():
     """Build the LightningCLI subclass (imports Lightning and the data/model stack only when needed)."""
     from jsonargparse import ActionYesNo
     from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
-    from lightning.pytorch.loggers import WandbLogger
     from lightning.pytorch.plugins.io import CheckpointIO
     from lightning.pytorch.utilities.exceptions import MisconfigurationException
 
@@ -87,6 +86,7 @@ def _lightning_cli():
     from aesplat.train import AESplatModule
     from aesplat.train.callbacks import DataRecord, RunCheckpoint, Throughput
     from aesplat.train.checkpoint_io import AtomicCheckpointIO
+    from aesplat.train.logger import SteadyWandbLogger
     from aesplat.train.run_dir import FitWrites, lock_run, point_latest, wandb_mode, wandb_run_id
     from aesplat.train.signals import SignalsAtStepBoundary
 
@@ -268,7 +268,7 @@ def _lightning_cli():
                 wb = cfg.wandb
                 mode = wandb_mode(wb.mode)
                 extra = {"mode": "disabled"} if mode == "disabled" else {}
-                kwargs["logger"] = WandbLogger(
+                kwargs["logger"] = SteadyWandbLogger(
                     project=wb.project, entity=wb.entity, name=wb.name or run_dir.name, save_dir=str(run_dir),
                     id=wandb_run_id(run_dir), offline=mode == "offline", tags=list(wb.tags), **extra,
                 )  # fmt: skip

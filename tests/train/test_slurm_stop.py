@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slurm
 
 
 def test_a_cancelled_job_saves_where_it_stopped(job_env, smoke_shards, tmp_path):  # noqa: F811
-    """`scancel` sends SIGTERM to every process of the job, the data-loader workers
+    """`scancel` sends SIGTERM to every process of the job, the data-loader workers and wandb's service
     included: the step under way finishes on both ranks, last.ckpt is saved at that step and the fit says so.
     The job holds in step 2 (tests.train.test_signals.HoldUntilStopSignal) until it has the signal."""
     run_dir, ready, log = tmp_path / "run", tmp_path / "ready", tmp_path / "job.out"
@@ -33,11 +33,13 @@ def test_a_cancelled_job_saves_where_it_stopped(job_env, smoke_shards, tmp_path)
         f"      init_args:\n        ready: {ready}\n        at: 1\n"
     )
     # One data-loader worker per rank: with more, a rank would get none of the smoke data's two validation
-    # scenes. No logger: wandb's service process is one of the job's processes too, and SIGTERM ends it.
+    # scenes. An offline wandb run: wandb's service process is one of the job's processes too, and SIGTERM
+    # ends it; the fit must save all the same.
     args = ["-c", "conf/smoke.yaml", "-c", str(overlay), "--data.root", str(smoke_shards),
             "--trainer.default_root_dir", str(run_dir), "--trainer.max_steps", str(STEPS),
             "--last_checkpoint.every_n_train_steps", str(STEPS), "--data.num_workers", "1",
-            "--trainer.logger", "false", "--trainer.enable_progress_bar", "false"]  # fmt: skip
+            "--trainer.logger", "true", "--wandb.mode", "offline", "--trainer.enable_progress_bar",
+            "false"]  # fmt: skip
     job_id = sbatch(job_env, "train.sbatch", CPU_JOB, args, log, "cancelled")
     wait_until(lambda: ready.exists() or job_info(job_env, job_id)["JobState"] in FINAL_STATES, "step 2")
     assert job_info(job_env, job_id)["JobState"] == "RUNNING", log.read_text()
