@@ -385,24 +385,24 @@ def check_inputs(command: str, cfg, resuming: bool = False) -> None:
     ckpt_path = cfg.get("ckpt_path")
     if command == "fit":
         find_shards(cfg.data.root, "train")
-        if cfg.trainer.get("limit_val_batches") != 0 and cfg.trainer.get("check_val_every_n_epoch") is not None:
-            # validation runs on the validation split; on the test split only when data.validate_on_test asks
-            split = validation_split(cfg.data.root, cfg.data.get("validate_on_test", False))
-            find_shards(cfg.data.root, split)
-            check_target_count(cfg.data.root, split, cfg.data.get("eval_num_target_views"))
+        trainer = cfg.trainer
+        validates = trainer.get("limit_val_batches") != 0 and trainer.get("check_val_every_n_epoch") is not None
+        # validation runs on the validation split; on the test split only when data.validate_on_test asks
+        split = validation_split(cfg.data.root, cfg.data.get("validate_on_test", False)) if validates else None
+    elif command == "validate":  # the split validation runs on, as fit's validation
+        split = validation_split(cfg.data.root, cfg.data.get("validate_on_test", False))
+    else:
+        split = cfg.data.get("test_split", "test")
+    if split is not None:  # the split evaluated
+        find_shards(cfg.data.root, split)
+        check_target_count(cfg.data.root, split, cfg.data.get("eval_num_target_views"))
+    if command == "fit":
         held = run_artifacts(run_dir) if launching_process() else []
         if held and ckpt_path is None and not resuming and not cfg.overwrite:
             raise UserError(
                 f"{run_dir} already holds a run ({held[0].relative_to(run_dir)}): resume it with --ckpt_path "
                 "last, give a new --trainer.default_root_dir, or --overwrite to delete it and start afresh"
             )
-    elif command == "validate":  # the split validation runs on, as fit's validation
-        split = validation_split(cfg.data.root, cfg.data.get("validate_on_test", False))
-    else:
-        split = cfg.data.get("test_split", "test")
-    if command != "fit":
-        find_shards(cfg.data.root, split)
-        check_target_count(cfg.data.root, split, cfg.data.get("eval_num_target_views"))
     weights = cfg.model.net.get("weights") if cfg.model.get("net") else None
     if weights:
         read_torch_file(weights, "--model.net.weights")

@@ -54,12 +54,18 @@ def signal_name(signum: int) -> str:
         return f"signal {signum}"
 
 
+def nearest_existing(path: Path) -> Path:
+    """``path`` (resolved) if it exists, else its nearest ancestor that does: where it would be created."""
+    probe = path.resolve()
+    while not probe.exists():
+        probe = probe.parent
+    return probe
+
+
 def check_writable(folder: Path, named: str) -> None:
     """``folder`` is, or can be created inside, a folder this process may write into; else a UserError
     "``named``: cannot write in ..." naming the nearest existing folder."""
-    probe = folder.resolve()
-    while not probe.exists():
-        probe = probe.parent
+    probe = nearest_existing(folder)
     if not probe.is_dir() or not os.access(probe, os.W_OK | os.X_OK):
         raise UserError(f"{named}: cannot write in {probe} (no permission)")
 

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import secrets
 import shutil
@@ -22,6 +23,12 @@ from typing import BinaryIO
 from .errors import UserError
 
 PARTIAL_SUFFIX = ".partial"  # temporary files of atomic_write: .NAME.<random>.partial
+
+
+def name_digest(name: str) -> str:
+    """8 hex digits of ``name``'s SHA-256 (a byte that is not UTF-8 included): appended where a name is
+    shortened or has characters replaced for a file or a tar member, so that names stay apart."""
+    return hashlib.sha256(name.encode("utf-8", "surrogateescape")).hexdigest()[:8]
 
 
 def fsync_dir(folder: str | Path) -> None:

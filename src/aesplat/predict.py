@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from .checkpoint import LoadedCheckpoint, load_checkpoint
 from .commands import HelpFormatter, OneLineParser, resolve_device
-from .errors import MissingFileError, UserError, check_writable, run_reporting_user_errors
+from .errors import MissingFileError, UserError, check_writable, nearest_existing, run_reporting_user_errors
 from .export import (
     EXPORTS,
     VIEWER_MAX_SH_DEGREE,
@@ -668,11 +668,8 @@ def check_options(args: argparse.Namespace) -> None:
 def check_name_lengths(out: Path, photos: list[str], names: list[str]) -> None:
     """Refuse, before the model loads, a photo whose outputs' file name (``inputs/NN_NAME.png``, the longest)
     is longer than the file system under ``out`` allows."""
-    parent = out.resolve().parent
-    while not parent.exists():
-        parent = parent.parent
     try:
-        limit = os.pathconf(parent, "PC_NAME_MAX")
+        limit = os.pathconf(nearest_existing(out.resolve().parent), "PC_NAME_MAX")
     except (OSError, ValueError):
         limit = 255
     for i, (photo, name) in enumerate(zip(photos, names)):

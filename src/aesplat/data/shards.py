@@ -397,14 +397,15 @@ def convert_unit(job: _Job) -> dict[str, Any]:
                     where = f"#{seen} of {job.unit.path.name}"
                     refused[where] = ["bad_key", f"scene {where} has no key: give it one"]
                     continue
-                other = taken.get(safe_key(item.key))
+                shard_key = safe_key(item.key)
+                other = taken.get(shard_key)
                 if other is not None:  # one shard key, one sample: a second would be read into the first
                     skips["duplicate_key"] += 1
                     refused[f"{item.key} (again)" if other == item.key else item.key] = [
-                        "duplicate_key", f"{item.key!r}: its shard key {safe_key(item.key)!r} is taken by "
-                        f"{other!r} in the same source file; give each scene a key of its own"]  # fmt: skip
+                        "duplicate_key", f"{item.key!r}: its shard key {shard_key!r} is taken by {other!r} in "
+                        "the same source file; give each scene a key of its own"]  # fmt: skip
                     continue
-                taken[safe_key(item.key)] = item.key
+                taken[shard_key] = item.key
                 try:
                     _check(item, job)
                     if job.evaluation:
@@ -433,7 +434,7 @@ def convert_unit(job: _Job) -> dict[str, Any]:
                         with Image.open(io.BytesIO(data)) as im:
                             mask = np.asarray(im) > 0
                         highlight, masked = highlight + int(mask.sum()), masked + mask.size
-                writer.add(safe_key(item.key), sample)
+                writer.add(shard_key, sample)
                 keys.append(item.key)
                 sources.update((str(p), None) for p in item.sources)
             if writer.samples:

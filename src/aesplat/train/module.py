@@ -14,7 +14,6 @@ advance with the batch; ``SkipGuard`` explains the first such step and stops a r
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import asdict
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from torch import Tensor
 from torchmetrics import MeanMetric
 
 from aesplat.errors import UserError
+from aesplat.files import name_digest
 from aesplat.model import (
     CAMERA_SOURCES,
     CameraSource,
@@ -429,5 +429,4 @@ def render_name(scene: str) -> str:
     plain = "".join(c if c.isascii() and (c.isalnum() or c in "-_.") else "_" for c in scene)
     if plain == scene.lower() and 0 < len(scene) <= 120 and not scene.startswith("."):
         return f"{scene}.png"
-    digest = hashlib.sha256(scene.encode("utf-8", "surrogateescape")).hexdigest()[:8]
-    return f"{plain.lstrip('.')[:80]}~{digest}.png"
+    return f"{plain.lstrip('.')[:80]}~{name_digest(scene)}.png"

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import re
 from collections.abc import Iterator
@@ -11,6 +10,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from ...errors import UserError
+from ...files import name_digest
 from ..scene import Scene, Skipped
 
 SPLITS = ("train", "validation", "test")
@@ -26,8 +26,7 @@ def safe_key(text: str) -> str:
     key = re.sub(r"[^A-Za-z0-9_\-]", "_", text)
     if len(key) <= SAFE_KEY_LENGTH:
         return key
-    digest = hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()[:8]
-    return f"{key[: SAFE_KEY_LENGTH - 9]}_{digest}"
+    return f"{key[: SAFE_KEY_LENGTH - 9]}_{name_digest(text)}"
 
 
 @dataclass(frozen=True)
