@@ -42,8 +42,8 @@ from figures import provenance, write_whole  # noqa: E402
 
 from aesplat.bench import evaluation_scenes  # noqa: E402
 from aesplat.checkpoint import LoadedCheckpoint, load_checkpoint, run_config  # noqa: E402
+from aesplat.images import colorize_depth  # noqa: E402
 from aesplat.model import forward_batch  # noqa: E402
-from aesplat.predict import colorize_depth  # noqa: E402
 from aesplat.render import render  # noqa: E402
 from aesplat.train.metrics import COPY_BEST, COPY_MEAN, context_copy_psnr, psnr  # noqa: E402
 

@@ -58,7 +58,8 @@ from headless_chromium import Chromium, find_chromium  # noqa: E402
 from aesplat.errors import UserError  # noqa: E402
 from aesplat.export.prediction import PredictedScene, read_prediction  # noqa: E402
 from aesplat.export.splat import SPLAT_DTYPE  # noqa: E402
-from aesplat.predict import check_output_dir, staged_output, to_uint8  # noqa: E402
+from aesplat.files import check_output_dir, written_whole  # noqa: E402
+from aesplat.images import to_uint8  # noqa: E402
 from aesplat.render import render  # noqa: E402
 from aesplat.render.projection import project_gaussians  # noqa: E402
 from aesplat.train.metrics import psnr  # noqa: E402
@@ -437,7 +438,8 @@ def main(argv: list[str] | None = None) -> int:
         "files": files,
         "seconds": round(time.monotonic() - started, 1),
     }
-    with staged_output(out, args.overwrite) as staging:
+    with written_whole(out, args.overwrite, "aesplat predict", "--out") as staging:
+        staging.mkdir()
         for key, (picture, _) in shown.items():
             Image.fromarray(picture).save(staging / f"{key}.png")
         Image.fromarray(sh0).save(staging / "sh0.png")

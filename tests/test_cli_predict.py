@@ -195,7 +195,7 @@ def test_a_photo_name_too_long_for_the_outputs_is_one_line_before_the_model_load
 
 
 def test_a_later_run_removes_the_staging_folder_of_a_run_killed_outright(tmp_path, capsys):
-    from aesplat.predict import _staging_prefix, staged_output
+    from aesplat.files import _staging_prefix, written_whole
 
     out = tmp_path / "out"
     gone = subprocess.run(["sh", "-c", "echo $$"], capture_output=True, text=True)  # a process that has ended
@@ -204,8 +204,9 @@ def test_a_later_run_removes_the_staging_folder_of_a_run_killed_outright(tmp_pat
     elsewhere = tmp_path / f".out.partial-another-host-{gone.stdout.strip()}-0a1b2c"  # a shared file system
     for folder in (killed, running, elsewhere):
         (folder / "gaussians").mkdir(parents=True)
-    with staged_output(out, overwrite=False) as staging:
-        assert staging.name.startswith(_staging_prefix(out, os.getpid()) + "-")
+    with written_whole(out, False, "aesplat predict") as staging:
+        assert staging.parent.name.startswith(_staging_prefix(out, os.getpid()) + "-")
+        staging.mkdir()
         (staging / "cameras.json").write_text("{}")
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["out", running.name, elsewhere.name])
     assert (out / "cameras.json").read_text() == "{}"

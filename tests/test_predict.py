@@ -11,17 +11,12 @@ import torch
 import yaml
 from PIL import Image
 
+from aesplat.camera_path import interpolate_cameras, slerp
+from aesplat.checkpoint import load_checkpoint
 from aesplat.errors import UserError
 from aesplat.geometry import make_pose, matrix_to_quat, quat_to_matrix
-from aesplat.predict import (
-    colorize_depth,
-    interpolate_cameras,
-    load_checkpoint,
-    load_image,
-    main,
-    model_image_shape,
-    slerp,
-)
+from aesplat.images import colorize_depth, load_image, model_image_shape
+from aesplat.predict import main
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
 
@@ -415,11 +410,11 @@ def test_images_too_small_for_the_model_are_refused_with_the_minimum(tmp_path):
 
 
 def test_a_huge_photo_is_never_decoded_to_floats_at_full_size(tmp_path, monkeypatch):
-    from aesplat import predict
+    from aesplat import images
 
     seen = []
-    to_float = predict._to_rgb_float
-    monkeypatch.setattr(predict, "_to_rgb_float", lambda img, *a: seen.append(img.size) or to_float(img, *a))
+    to_float = images._to_rgb_float
+    monkeypatch.setattr(images, "_to_rgb_float", lambda img, *a: seen.append(img.size) or to_float(img, *a))
     rng = np.random.default_rng(1)
     photo = np.kron(rng.integers(0, 255, (6, 12, 3)), np.ones((200, 200, 1))).astype(np.uint8)  # 2400 x 1200
     for name in ("huge.jpg", "huge.png"):

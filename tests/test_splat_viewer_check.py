@@ -25,10 +25,12 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from aesplat.camera_path import camera_record
 from aesplat.export import write_ply
 from aesplat.export.splat import write_splat
 from aesplat.geometry import make_pose, matrix_to_quat, rgb_to_sh_dc
-from aesplat.predict import camera_record, compact_json, save_image
+from aesplat.images import save_image
+from aesplat.predict import compact_json
 from aesplat.render import RenderSettings, render
 from aesplat.types import Gaussians
 from tests.script_loader import load_script

@@ -4,7 +4,7 @@
     aesplat predict …     (aesplat.predict)
     aesplat bench …       (aesplat.bench)
     aesplat export …      (aesplat.export.command)
-    aesplat view …        (aesplat.view)
+    aesplat view …        (aesplat.view.command)
 
 fit/validate/test are a LightningCLI in OmegaConf parser mode (``${…}`` interpolation inside a file, several
 ``-c`` files layered left to right, ``--print_config`` to see the result). Besides the trainer, the module
@@ -564,7 +564,7 @@ def _run_command(command: str, argv: list[str]) -> None:
 
         export_main(argv[1:])
     elif command == "view":
-        from aesplat.view import main as view_main
+        from aesplat.view.command import main as view_main
 
         view_main(argv[1:])
     else:

@@ -4,6 +4,10 @@
   (so the final rename never crosses file systems), flushed to the disk (fsync), then renamed over the old
   file, which stays as it was until the new one is complete. A crash, ``kill -9`` or a full disk leaves the
   old file and, at worst, a hidden ``.NAME.*.partial`` file beside it (:func:`remove_partials` clears those).
+- :func:`written_whole` writes a file or a folder (a command's ``--out``, an export) the same way: into a
+  hidden staging folder beside it, flushed, then renamed into place; a failure leaves the destination as it was.
+  Its staging folders name the machine and the process, so that one left by a process killed outright is
+  removed by the next write of the same destination (:func:`remove_stale_staging`).
 - :func:`check_deletable` is the guard every ``--overwrite`` goes through before it deletes a folder: never
   the file system root, the current folder, the home folder or a folder holding one of them, and never a
   folder holding one of the command's own inputs.
@@ -11,16 +15,19 @@
 
 from __future__ import annotations
 
+import glob
 import hashlib
 import os
 import secrets
 import shutil
-from collections.abc import Callable, Iterable
-from contextlib import suppress
+import socket
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import BinaryIO
 
-from .errors import UserError
+from .errors import UserError, check_writable
 
 PARTIAL_SUFFIX = ".partial"  # temporary files of atomic_write: .NAME.<random>.partial
 
@@ -70,6 +77,71 @@ def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
         raise
     fsync_dir(folder)
     return path
+
+
+def _fsync_tree(path: Path) -> None:
+    """Flush a file, or every file of a folder, to the disk."""
+    for file in [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]:
+        with open(file, "rb") as f:
+            os.fsync(f.fileno())
+
+
+def _staging_prefix(dest: Path, pid: int | str = "") -> str:
+    """Name prefix of the staging folders of ``dest`` made on this machine (by process ``pid``)."""
+    return f".{dest.name}.partial-{socket.gethostname()}-{pid}"
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_staging(dest: Path) -> list[Path]:
+    """The staging folders of ``dest`` left by earlier runs on this machine whose process is gone (killed
+    outright, ``kill -9`` or a power loss: a stop signal removes its own); removed, and returned. Another
+    machine's (a shared file system) and running processes' are left alone."""
+    prefix = _staging_prefix(dest)
+    stale = []
+    for path in dest.parent.glob(glob.escape(prefix) + "*"):
+        pid = path.name[len(prefix) :].split("-", 1)[0]
+        if pid.isdigit() and path.is_dir() and not _running(int(pid)):
+            shutil.rmtree(path, ignore_errors=True)
+            stale.append(path)
+    return stale
+
+
+@contextmanager
+def written_whole(dest: Path, overwrite: bool, command: str, option: str = "") -> Iterator[Path]:
+    """Yield the path to write ``dest`` (a file or a folder) at, inside a staging folder beside it; when the
+    block ends without error, what was written there is flushed to the disk and renamed to ``dest`` (an old
+    ``dest``, allowed by ``overwrite`` or an empty folder, is replaced as a whole); on error it is deleted and
+    ``dest`` untouched. ``command`` and ``option`` (the command and its option that name ``dest``) start the
+    messages."""
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    for path in remove_stale_staging(dest):
+        print(f"{command}: removed {path}, the staging folder of an earlier run that was killed")
+    staging = Path(tempfile.mkdtemp(prefix=_staging_prefix(dest, os.getpid()) + "-", dir=dest.parent))
+    try:
+        yield staging / dest.name
+        _fsync_tree(staging / dest.name)
+        old = None
+        if dest.exists():
+            if not overwrite and (not dest.is_dir() or any(dest.iterdir())):  # it appeared while we worked
+                raise UserError(f"{option} {dest}".strip() + " was filled by something else meanwhile; nothing "
+                                "was written")  # fmt: skip
+            old = dest.parent / f".{dest.name}.old-{staging.name.rsplit('-', 1)[-1]}"
+            os.replace(dest, old)
+        os.replace(staging / dest.name, dest)
+        fsync_dir(dest.parent)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def remove_partials(folder: str | Path) -> list[Path]:
@@ -131,3 +203,18 @@ def delete_folder(folder: str | Path, flag: str, inputs: Inputs = (), keep: tupl
             shutil.rmtree(entry)
         else:
             entry.unlink()
+
+
+def check_output_dir(out: Path, overwrite: bool, inputs: Inputs = ()) -> None:
+    """Refuse, before anything is loaded, an output folder ``--out`` that cannot be written whole: a file, a
+    folder that holds something (unless ``overwrite``; and never one that holds the current folder, the home
+    folder or one of the command's ``inputs``), or a place without write permission."""
+    if out.exists() and not out.is_dir():
+        raise UserError(f"--out {out} is a file, not a folder; give a folder path")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise UserError(
+            f"--out {out} is not empty; give a new folder, or --overwrite to replace it (as a whole)"
+        )
+    if out.is_dir():  # it is replaced as a whole, even empty
+        check_deletable(out, "--overwrite" if overwrite else "--out", inputs)
+    check_writable(out.resolve().parent, f"--out {out}")  # the folder is renamed into place beside it

@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from PIL import Image
 
+from aesplat.camera_path import camera_record
 from aesplat.export import gaussians_to_ply_array, ply_property_names, write_ply
 from aesplat.geometry import make_pose, quat_to_matrix
-from aesplat.predict import camera_record
 from aesplat.types import Gaussians
 
 SIZE = 20  # the images' side in pixels

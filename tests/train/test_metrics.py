@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from aesplat.geometry import make_pose, quat_to_matrix
-from aesplat.train.evaluation import save_image, summarize, visual_grid, write_results
+from aesplat.images import save_image
+from aesplat.train.evaluation import summarize, visual_grid, write_results
 from aesplat.train.metrics import (
     COPY_BEST,
     COPY_MEAN,

@@ -6,9 +6,10 @@ import pytest
 import torch
 from PIL import Image
 
-from aesplat.predict import load_checkpoint, load_image, predict_scene, render_views
+from aesplat.checkpoint import load_checkpoint
+from aesplat.images import load_image, to_uint8
+from aesplat.inference import predict_scene, render_views
 from aesplat.view import render_viewpoint, scene_from_checkpoint, scene_from_path, viewpoint_of
-from aesplat.view.app import to_uint8
 from tests.prediction_helpers import IMAGE_SIZE, SH_DEGREE, make_prediction
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")

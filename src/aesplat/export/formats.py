@@ -3,21 +3,19 @@
     EXPORTS = {"colmap": ..., "nerfstudio": ..., "splat": ...}
     export_prediction(PREDICT_DIR, ["colmap", "splat"])   # PREDICT_DIR/colmap/, PREDICT_DIR/gaussians.splat
 
-Each output is written whole: under a temporary name in its destination folder, flushed to disk, then renamed
-into place, so a crash or a full disk leaves either the complete output or none. Destinations that exist are
-refused (before anything is written) unless ``overwrite``.
+Each output is written whole (``aesplat.files.written_whole``: a staging folder beside it, flushed to disk,
+then renamed into place), so a crash or a full disk leaves either the complete output or none. Destinations
+that exist are refused (before anything is written) unless ``overwrite``.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import UserError
+from ..files import written_whole
 from .colmap import write_colmap
 from .nerfstudio import write_nerfstudio
 from .prediction import PredictedScene, read_prediction
@@ -50,27 +48,6 @@ def parse_formats(text: str) -> list[str]:
     return list(dict.fromkeys(names))
 
 
-def _fsync_tree(path: Path) -> None:
-    files = [path] if path.is_file() else [p for p in path.rglob("*") if p.is_file()]
-    for file in files:
-        with open(file, "rb") as f:
-            os.fsync(f.fileno())
-
-
-def _write_whole(dest: Path, write: Callable[[Path], object], overwrite: bool) -> None:
-    """Call ``write`` on a temporary name beside ``dest``, flush it to disk, then rename it to ``dest``."""
-    staging = Path(tempfile.mkdtemp(prefix=f".{dest.name}.partial-", dir=dest.parent))
-    target = staging / dest.name
-    try:
-        write(target)
-        _fsync_tree(target)
-        if dest.exists() and overwrite:
-            shutil.rmtree(dest) if dest.is_dir() else dest.unlink()
-        os.replace(target, dest)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-
-
 def export_prediction(
     folder: str | Path, formats: list[str], *, overwrite: bool = False, scene: PredictedScene | None = None
 ) -> list[Path]:
@@ -89,5 +66,6 @@ def export_prediction(
     if not overwrite and (existing := [d for d in dests if d.exists()]):
         raise UserError(f"{existing[0]} exists; remove it, or give --overwrite to replace it")
     for name, dest in zip(formats, dests):
-        _write_whole(dest, lambda path, name=name: EXPORTS[name].write(scene, path), overwrite)
+        with written_whole(dest, overwrite, "aesplat export") as path:
+            EXPORTS[name].write(scene, path)
     return dests

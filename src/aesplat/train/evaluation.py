@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from PIL import Image
 from torch import Tensor
 
 from ..files import atomic_write
@@ -137,10 +136,3 @@ def visual_grid(context: Tensor, target: Tensor, render: Tensor, depth: Tensor) 
     tiles = torch.cat([context, target, render.clamp(0, 1), depth_to_rgb(depth)], dim=1).float().cpu()
     b, n, c, h, w = tiles.shape
     return tiles.permute(2, 0, 3, 1, 4).reshape(c, b * h, n * w)
-
-
-def save_image(image: Tensor, path: Path) -> None:
-    """Save [3, H, W] in [0, 1] as PNG."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    array = (image.clamp(0, 1).permute(1, 2, 0).numpy() * 255.0 + 0.5).astype(np.uint8)
-    Image.fromarray(array).save(path)

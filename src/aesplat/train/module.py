@@ -26,6 +26,7 @@ from torchmetrics import MeanMetric
 
 from aesplat.errors import UserError
 from aesplat.files import name_digest
+from aesplat.images import save_image
 from aesplat.model import (
     CAMERA_SOURCES,
     CameraSource,
@@ -38,7 +39,7 @@ from aesplat.model import (
 from aesplat.render import RasterizerConfig, render
 from aesplat.types import BatchedExample, Gaussians, RenderOutput
 
-from .evaluation import EvalConfig, save_image, visual_grid, write_results
+from .evaluation import EvalConfig, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, camera_loss, maybe_lpips
 from .metrics import highlight_psnr, overlap_bucket, psnr, relative_pose_errors, ssim
 from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates, skipped_when

@@ -8,7 +8,6 @@ go to the browser as downloads.
 """
 
 from .camera import Viewpoint, viewpoint_of
-from .command import main
 from .exact import render_viewpoint
 from .scene import ViewCamera, ViewScene, scene_from_checkpoint, scene_from_path
 
@@ -16,7 +15,6 @@ __all__ = [
     "ViewCamera",
     "ViewScene",
     "Viewpoint",
-    "main",
     "render_viewpoint",
     "scene_from_checkpoint",
     "scene_from_path",

@@ -45,7 +45,7 @@ from PIL import Image
 from ..errors import UserError
 from ..export import drop_transparent
 from ..geometry import covariance_from_scale_rot, sh_dc_to_rgb
-from ..predict import to_uint8
+from ..images import to_uint8
 from .camera import Viewpoint, capped_aspect, capped_height, viewpoint_of
 from .exact import render_viewpoint
 from .scene import ViewScene

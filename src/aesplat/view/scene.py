@@ -122,8 +122,10 @@ def scene_from_checkpoint(
     """Predict a scene from ``images`` with the checkpoint ``ckpt`` as ``aesplat predict`` does (the first
     photo's shape for every view, ``size`` its shorter side, ``crop`` as ``--crop``), in memory: nothing is
     written."""
+    from ..camera_path import interpolate_cameras
     from ..commands import resolve_device
-    from ..predict import interpolate_cameras, predict_photos, to_uint8
+    from ..images import to_uint8
+    from ..inference import predict_photos
 
     if len(images) < 2:
         raise UserError("give at least two images of the same scene after --ckpt")
