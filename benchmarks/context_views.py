@@ -212,7 +212,7 @@ def bench(run: Run, work: Path, settings: Settings) -> dict[int, dict]:
     """``aesplat bench --knobs context_views`` of the run's last checkpoint at its counts, on every test scene
     (kept when it is newer than the checkpoint): the bench's row per count, with the machine's 1-minute load
     average when it ran (``load_1min``)."""
-    from aesplat.bench import main as bench_main
+    from aesplat.bench.command import main as bench_main
 
     folder = run.directory(work)
     out = folder / "bench"

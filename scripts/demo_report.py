@@ -40,7 +40,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 from figures import provenance, write_whole  # noqa: E402
 
-from aesplat.bench import evaluation_scenes  # noqa: E402
+from aesplat.bench.command import evaluation_scenes  # noqa: E402
 from aesplat.checkpoint import LoadedCheckpoint, load_checkpoint, run_config  # noqa: E402
 from aesplat.images import colorize_depth  # noqa: E402
 from aesplat.model import forward_batch  # noqa: E402

@@ -9,19 +9,10 @@ import pytest
 import torch
 from PIL import Image
 
-from aesplat.bench import (
-    Bench,
-    Point,
-    Row,
-    Setting,
-    contexts_of,
-    default_sweep,
-    main,
-    markdown_tables,
-    model_input_sizes,
-    resize_views,
-    write_report,
-)
+from aesplat.bench.command import main
+from aesplat.bench.report import markdown_tables, write_report
+from aesplat.bench.run import Bench, Row, contexts_of, resize_views
+from aesplat.bench.sweep import Point, Setting, default_sweep, model_input_sizes
 from aesplat.model import build_model, dataset_cameras
 from aesplat.render import render
 from aesplat.train.metrics import psnr

@@ -121,7 +121,7 @@ def test_posed_fit_saves_loads_and_tests_through_plain_test(shards, tmp_path):
 
 def test_predict_and_bench_dispatch(monkeypatch):
     calls = []
-    for name, module in (("predict", "predict"), ("bench", "bench")):
+    for name, module in (("predict", "predict"), ("bench", "bench.command")):
         fake = types.ModuleType(f"aesplat.{module}")
         fake.main = lambda argv, name=name: calls.append((name, list(argv)))
         monkeypatch.setitem(sys.modules, f"aesplat.{module}", fake)

@@ -28,7 +28,7 @@ PAGES = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
 SUBCOMMANDS = ("fit", "validate", "test", "predict", "bench", "view", "export")
 APPS = {  # the commands with an argparse parser of their own, by module
     "predict": "aesplat.predict",
-    "bench": "aesplat.bench",  # accuracy against time
+    "bench": "aesplat.bench.command",  # accuracy against time
     "view": "aesplat.view.command",
     "export": "aesplat.export.command",
 }

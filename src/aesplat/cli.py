@@ -2,7 +2,7 @@
 
     aesplat fit|validate|test -c conf/FILE.yaml [-c conf/OVERLAY.yaml …] [--dotted.key value …]
     aesplat predict …     (aesplat.predict)
-    aesplat bench …       (aesplat.bench)
+    aesplat bench …       (aesplat.bench.command)
     aesplat export …      (aesplat.export.command)
     aesplat view …        (aesplat.view.command)
 
@@ -556,7 +556,7 @@ def _run_command(command: str, argv: list[str]) -> None:
 
         predict_main(argv[1:])
     elif command == "bench":
-        from aesplat.bench import main as bench_main
+        from aesplat.bench.command import main as bench_main
 
         bench_main(argv[1:])
     elif command == "export":
