@@ -72,7 +72,7 @@ def shoot(page: Chromium, path: Path) -> None:
 
 def screenshots(pred: Path, out: Path, suffix: str, width: int, height: int, oblique: bool) -> None:
     """The fast and exact modes at the viewer's first view (and the oblique exact view) of one prediction."""
-    from aesplat.view import scene_from_path
+    from aesplat.view.scene import scene_from_path
 
     scene = scene_from_path(pred)
     for mode in ("fast", "exact") if suffix == "" else ("exact",):

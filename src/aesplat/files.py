@@ -138,8 +138,10 @@ def written_whole(dest: Path, overwrite: bool, command: str, option: str = "") -
             os.replace(dest, old)
         os.replace(staging / dest.name, dest)
         fsync_dir(dest.parent)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink()
+        if old is not None and old.is_dir():
+            shutil.rmtree(old, ignore_errors=True)
+        elif old is not None:
+            old.unlink()
     finally:
         shutil.rmtree(staging, ignore_errors=True)
 

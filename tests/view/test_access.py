@@ -31,7 +31,7 @@ pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     need_viser()
-    from aesplat.view import scene_from_path
+    from aesplat.view.scene import scene_from_path
 
     return scene_from_path(make_prediction(tmp_path_factory.mktemp("view"))[0])
 

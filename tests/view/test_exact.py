@@ -9,7 +9,9 @@ from PIL import Image
 from aesplat.checkpoint import load_checkpoint
 from aesplat.images import load_image, to_uint8
 from aesplat.inference import predict_scene, render_views
-from aesplat.view import render_viewpoint, scene_from_checkpoint, scene_from_path, viewpoint_of
+from aesplat.view.camera import viewpoint_of
+from aesplat.view.exact import render_viewpoint
+from aesplat.view.scene import scene_from_checkpoint, scene_from_path
 from tests.prediction_helpers import IMAGE_SIZE, SH_DEGREE, make_prediction
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")

@@ -81,8 +81,9 @@ def test_viewer_in_headless_chromium(prediction):
     need_viser()
     need(browser.find_chromium() is not None, "Chromium (apt-get install chromium)")
     from aesplat.images import to_uint8
-    from aesplat.view import render_viewpoint, scene_from_path
     from aesplat.view.app import Viewer, ViewerOptions, framing_distance
+    from aesplat.view.exact import render_viewpoint
+    from aesplat.view.scene import scene_from_path
 
     before = snapshot(prediction)
     scene = scene_from_path(prediction)

@@ -59,40 +59,21 @@ def build_parser() -> argparse.ArgumentParser:
                         "data.num_context_views, the lower end of a range)")  # fmt: skip
     parser.add_argument("--knobs", type=_names, default=None,
                         help=f"comma-separated subset of {', '.join(KNOB_TITLES)} (default: all)")  # fmt: skip
-    parser.add_argument(
-        "--input-scales",
-        type=_floats,
-        default=[0.5, 0.75, 1.0],
-        help="model input sides as fractions of the data's (rounded to multiples of 14)",
-    )
-    parser.add_argument(
-        "--render-scales",
-        type=_floats,
-        default=[0.25, 0.5, 0.75, 1.0],
-        help="render sides as fractions of the data's",
-    )
-    parser.add_argument(
-        "--keep-fractions",
-        type=_floats,
-        default=[1.0, 0.5, 0.25, 0.1],
-        help="fractions of the most opaque Gaussians kept",
-    )
-    parser.add_argument(
-        "--min-opacities",
-        type=_floats,
-        default=[0.0, 0.05, 0.2, 0.5, 0.8],
-        help="opacity thresholds below which Gaussians are dropped",
-    )
+    parser.add_argument("--input-scales", type=_floats, default=[0.5, 0.75, 1.0], help="model input sides as "
+                        "fractions of the data's (rounded to multiples of 14)")  # fmt: skip
+    parser.add_argument("--render-scales", type=_floats, default=[0.25, 0.5, 0.75, 1.0],
+                        help="render sides as fractions of the data's")  # fmt: skip
+    parser.add_argument("--keep-fractions", type=_floats, default=[1.0, 0.5, 0.25, 0.1],
+                        help="fractions of the most opaque Gaussians kept")  # fmt: skip
+    parser.add_argument("--min-opacities", type=_floats, default=[0.0, 0.05, 0.2, 0.5, 0.8],
+                        help="opacity thresholds below which Gaussians are dropped")  # fmt: skip
     parser.add_argument("--precisions", type=_names, default=["fp32", "bf16"], help="model precisions")
     parser.add_argument("--backends", type=_names, default=None,
                         help="renderer backends (default: torch, plus gsplat when CUDA and gsplat are here; "
                         "the first is the baseline's)")  # fmt: skip
     parser.add_argument("--tile-sizes", type=_floats, default=[8, 16], help="renderer tile sides")
-    parser.add_argument(
-        "--compile",
-        action="store_true",
-        help="also measure the torch backend with torch.compile (cold compiles take minutes)",
-    )
+    parser.add_argument("--compile", action="store_true", help="also measure the torch backend with "
+                        "torch.compile (cold compiles take minutes)")  # fmt: skip
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, ... (auto: cuda if available)")
     parser.add_argument("--threads", type=int, default=None,
                         help=f"torch CPU threads (default: the usable cores, or ${ENV_OVERRIDE})")  # fmt: skip

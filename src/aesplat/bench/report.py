@@ -9,7 +9,7 @@ import math
 import os
 import platform
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import torch
@@ -17,8 +17,7 @@ import torch
 from .run import Row
 from .sweep import KNOB_TITLES
 
-CSV_FIELDS = ["knob", "label", "psnr", "ssim", "rot_err_deg", "forward_ms", "render_ms", "total_ms",
-              "gaussians", "baseline", "skipped"]  # fmt: skip
+CSV_FIELDS = [f.name for f in fields(Row) if f.name != "setting"]  # the settings are in bench.json
 
 
 def write_csv(rows: Sequence[Row], path: Path) -> None:

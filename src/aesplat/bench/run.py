@@ -3,6 +3,7 @@ the timing, and the single-scene examples it measures on."""
 
 from __future__ import annotations
 
+import itertools
 import math
 import statistics
 import time
@@ -143,6 +144,10 @@ class Bench:
             )
         return out
 
+    def render_options(self, setting: Setting) -> dict:
+        """Keyword arguments of ``render`` for ``setting``: the shared ones, its own, its backend."""
+        return {**self.render_kwargs, **dict(setting.render_options), "backend": setting.backend}
+
     @torch.no_grad()
     def forward(self, setting: Setting) -> list[_Forward]:
         """Model outputs (and forward times) of every scene for the forward key of ``setting`` (cached)."""
@@ -189,12 +194,10 @@ class Bench:
         try:
             forwards = self.forward(s)
             psnrs, ssims, render_ms, counts = [], [], [], []
+            size, options = s.render_size or self.native, self.render_options(s)
             for i, (scene, fwd) in enumerate(zip(self.scenes, forwards)):
-                size = s.render_size or self.native
 
-                options = {**self.render_kwargs, **dict(s.render_options), "backend": s.backend}
-
-                def run(fwd: _Forward = fwd, size: int = size, options: dict = options):
+                def run(fwd: _Forward = fwd):
                     gaussians = select_gaussians(fwd.gaussians, s)
                     out = render(gaussians, fwd.extrinsics, fwd.intrinsics, size, size, sh_degree=s.sh_degree,
                                  **options)  # fmt: skip
@@ -228,7 +231,7 @@ class Bench:
         longer than one per-setting warm-up run absorbs; without this the first settings measured look slow.
         """
         scene = self.with_context(setting.context_views)[0]
-        options = {**self.render_kwargs, **dict(setting.render_options), "backend": setting.backend}
+        options = self.render_options(setting)
         for _ in range(runs):
             out = forward_batch(self.model, scene, self.cameras)
             vc = scene.context.num_views
@@ -252,12 +255,7 @@ class Bench:
 
 def single_scenes(batches: Iterable[BatchedExample], limit: int, device: torch.device) -> list[BatchedExample]:
     """Split loader batches into at most ``limit`` single-scene examples (B = 1), float images on ``device``."""
-    scenes: list[BatchedExample] = []
-    for scene in each_scene(batches, device):
-        if len(scenes) >= limit:
-            break
-        scenes.append(scene)
-    return scenes
+    return list(itertools.islice(each_scene(batches, device), limit))
 
 
 def each_scene(batches: Iterable[BatchedExample], device: torch.device) -> Iterator[BatchedExample]:

@@ -6,17 +6,3 @@ See docs/view.md. The viewer listens on 127.0.0.1 unless ``--host`` says otherwi
 a key drawn at each start: only that page may connect), and runs until Ctrl-C. It writes nothing: screenshots
 go to the browser as downloads.
 """
-
-from .camera import Viewpoint, viewpoint_of
-from .exact import render_viewpoint
-from .scene import ViewCamera, ViewScene, scene_from_checkpoint, scene_from_path
-
-__all__ = [
-    "ViewCamera",
-    "ViewScene",
-    "Viewpoint",
-    "render_viewpoint",
-    "scene_from_checkpoint",
-    "scene_from_path",
-    "viewpoint_of",
-]

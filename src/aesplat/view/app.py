@@ -203,7 +203,7 @@ class Viewer:
     """A running viewer: ``url``, ``clients`` (connected client sessions by id) and ``stop()``."""
 
     def __init__(self, scene: ViewScene, options: ViewerOptions) -> None:
-        import viser  # the optional `viewer` extra; aesplat.view.main turns its absence into one line
+        import viser  # the optional `viewer` extra; aesplat.view.command turns its absence into one line
 
         if options.mode not in MODES:
             raise UserError(f"unknown render mode {options.mode!r}; choose from {', '.join(MODES)}")

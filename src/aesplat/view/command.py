@@ -8,6 +8,7 @@ import signal
 import threading
 
 from ..errors import UserError, run_reporting_user_errors
+from ..images import CROPS
 from .scene import scene_from_checkpoint, scene_from_path
 
 VIEWER_EXTRA = 'pip install -e ".[viewer]"'
@@ -30,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--ckpt", default=None, help="predict from the images with this checkpoint, then view")
     parser.add_argument("--size", type=int, default=None,
                         help="with --ckpt: the model's square input side (default: its own)")  # fmt: skip
-    parser.add_argument("--crop", choices=("none", "square"), default="none",
+    parser.add_argument("--crop", choices=CROPS, default="none",
                         help="with --ckpt: as `aesplat predict --crop`")  # fmt: skip
     parser.add_argument("--host", default=defaults.host,
                         help="address to listen on; 0.0.0.0 shares the viewer with the network (the printed "
