@@ -1,4 +1,5 @@
-"""Small random scenes and cameras shared by the render tests."""
+"""Small random scenes and cameras shared by the render tests, and renders of them with their gradients, by the
+torch backend and by the reference."""
 
 from __future__ import annotations
 
@@ -8,7 +9,12 @@ import torch
 from torch import Tensor
 
 from aesplat.geometry import intrinsics_from_fov, make_pose, quat_to_matrix
+from aesplat.render import render
 from aesplat.types import Gaussians
+
+from .reference import reference_render
+
+H, W = 20, 28  # the image size of the comparisons
 
 
 def random_scene(
@@ -50,3 +56,33 @@ def cameras(
     ext = torch.stack(poses)[None].expand(b, v, 4, 4).clone()
     intr = torch.stack(ks)[None].expand(b, v, 3, 3).clone()
     return ext, intr
+
+
+def leaf_tensors(g: Gaussians, ext: Tensor, intr: Tensor, bg: Tensor, dtype: torch.dtype) -> list[Tensor]:
+    """The scene's tensors, cameras and background as fresh ``dtype`` leaves that require gradients."""
+    tensors = [g.means, g.quats, g.scales, g.opacities, g.sh, ext, intr, bg]
+    return [t.detach().clone().to(dtype).requires_grad_() for t in tensors]
+
+
+def outputs_and_grads(fn, leaves: list[Tensor], weights: list[Tensor]) -> tuple[list[Tensor], list[Tensor]]:
+    """``fn``'s (colour, depth, alpha) on ``leaves`` and the gradients of their ``weights``-weighted sum,
+    both float64."""
+    g = Gaussians(*leaves[:5])
+    outs = fn(g, *leaves[5:])
+    loss = sum((o * w.to(o.dtype)).sum() for o, w in zip(outs, weights))
+    grads = torch.autograd.grad(loss, leaves)
+    return [o.detach().double() for o in outs], [x.double() for x in grads]
+
+
+def torch_fn(**options):
+    """A render of H x W by the torch backend with ``options`` -> (colour, depth, alpha)."""
+
+    def fn(g, ext, intr, bg):
+        out = render(g, ext, intr, H, W, background=bg, backend="torch", **options)
+        return out.color, out.depth, out.alpha
+
+    return fn
+
+
+def reference_fn(g, ext, intr, bg):
+    return reference_render(g, ext, intr, H, W, bg)

@@ -10,8 +10,7 @@ from aesplat.render import render
 from aesplat.render.composite import _StepSizes
 from aesplat.types import Gaussians
 
-from .scenes import cameras, random_scene
-from .test_torch_backend import H, W, _leaves, _outputs_and_grads, _reference_fn, _torch_fn
+from .scenes import H, W, cameras, leaf_tensors, outputs_and_grads, random_scene, reference_fn, torch_fn
 
 
 def test_step_grows_only_while_few_tiles_are_active():
@@ -41,9 +40,9 @@ def test_step_sizes_match_reference_float64(step_elements):
     ext, intr = cameras(1, 1)
     weights = [torch.rand(1, 1, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
     bg = torch.rand(1, 3, dtype=torch.float64)
-    ref_out, ref_grad = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
-    fn = _torch_fn(chunk=3, tile_size=8, step_elements=step_elements)
-    out, grad = _outputs_and_grads(fn, _leaves(g, ext, intr, bg, torch.float64), weights)
+    ref_out, ref_grad = outputs_and_grads(reference_fn, leaf_tensors(g, ext, intr, bg, torch.float64), weights)
+    fn = torch_fn(chunk=3, tile_size=8, step_elements=step_elements)
+    out, grad = outputs_and_grads(fn, leaf_tensors(g, ext, intr, bg, torch.float64), weights)
     for a, b in zip(out + grad, ref_out + ref_grad):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
 

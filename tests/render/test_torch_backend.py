@@ -12,34 +12,7 @@ from aesplat.render import render
 from aesplat.types import Gaussians
 
 from .reference import reference_render
-from .scenes import cameras, random_scene
-
-H, W = 20, 28
-
-
-def _leaves(g: Gaussians, ext, intr, bg, dtype):
-    tensors = [g.means, g.quats, g.scales, g.opacities, g.sh, ext, intr, bg]
-    return [t.detach().clone().to(dtype).requires_grad_() for t in tensors]
-
-
-def _outputs_and_grads(fn, leaves, weights):
-    g = Gaussians(*leaves[:5])
-    outs = fn(g, *leaves[5:])
-    loss = sum((o * w.to(o.dtype)).sum() for o, w in zip(outs, weights))
-    grads = torch.autograd.grad(loss, leaves)
-    return [o.detach().double() for o in outs], [x.double() for x in grads]
-
-
-def _torch_fn(**options):
-    def fn(g, ext, intr, bg):
-        out = render(g, ext, intr, H, W, background=bg, backend="torch", **options)
-        return out.color, out.depth, out.alpha
-
-    return fn
-
-
-def _reference_fn(g, ext, intr, bg):
-    return reference_render(g, ext, intr, H, W, bg)
+from .scenes import H, W, cameras, leaf_tensors, outputs_and_grads, random_scene, reference_fn, torch_fn
 
 
 def _antialiased_reference_fn(g, ext, intr, bg):
@@ -65,8 +38,8 @@ def test_matches_reference_float32(seed, options):
     ext, intr = cameras(2, 2)
     bg = torch.rand(2, 3, dtype=torch.float64)
     weights = [torch.rand(2, 2, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
-    ref_out, ref_grad = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
-    out, grad = _outputs_and_grads(_torch_fn(**options), _leaves(g, ext, intr, bg, torch.float32), weights)
+    ref_out, ref_grad = outputs_and_grads(reference_fn, leaf_tensors(g, ext, intr, bg, torch.float64), weights)
+    out, grad = outputs_and_grads(torch_fn(**options), leaf_tensors(g, ext, intr, bg, torch.float32), weights)
     assert ref_out[2].max() > 0.9 and (ref_out[2] < 1e-6).any()  # saturated and empty pixels both occur
     assert_float32_matches(out, grad, ref_out, ref_grad)
 
@@ -76,8 +49,8 @@ def test_matches_reference_float64_exactly():
     ext, intr = cameras(1, 3)
     bg = torch.rand(1, 3, dtype=torch.float64)
     weights = [torch.rand(1, 3, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
-    ref_out, ref_grad = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
-    out, grad = _outputs_and_grads(_torch_fn(chunk=5), _leaves(g, ext, intr, bg, torch.float64), weights)
+    ref_out, ref_grad = outputs_and_grads(reference_fn, leaf_tensors(g, ext, intr, bg, torch.float64), weights)
+    out, grad = outputs_and_grads(torch_fn(chunk=5), leaf_tensors(g, ext, intr, bg, torch.float64), weights)
     for a, b in zip(out + grad, ref_out + ref_grad):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
 
@@ -94,13 +67,13 @@ def test_antialiased_matches_reference_float32():
     ext, intr = cameras(2, 2)
     bg = torch.rand(2, 3, dtype=torch.float64)
     weights = [torch.rand(2, 2, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
-    ref_out, ref_grad = _outputs_and_grads(
-        _antialiased_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights
+    ref_out, ref_grad = outputs_and_grads(
+        _antialiased_reference_fn, leaf_tensors(g, ext, intr, bg, torch.float64), weights
     )
-    out, grad = _outputs_and_grads(
-        _torch_fn(rasterize_mode="antialiased", chunk=4), _leaves(g, ext, intr, bg, torch.float32), weights
+    out, grad = outputs_and_grads(
+        torch_fn(rasterize_mode="antialiased", chunk=4), leaf_tensors(g, ext, intr, bg, torch.float32), weights
     )
-    classic, _ = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
+    classic, _ = outputs_and_grads(reference_fn, leaf_tensors(g, ext, intr, bg, torch.float64), weights)
     assert (classic[2] - ref_out[2]).abs().max() > 0.1  # the filter changes this scene
     assert_float32_matches(out, grad, ref_out, ref_grad)
 
@@ -110,9 +83,9 @@ def test_antialiased_matches_reference_float64_exactly():
     ext, intr = cameras(1, 3)
     bg = torch.rand(1, 3, dtype=torch.float64)
     weights = [torch.rand(1, 3, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
-    ref = _outputs_and_grads(_antialiased_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
-    out = _outputs_and_grads(
-        _torch_fn(rasterize_mode="antialiased", chunk=5), _leaves(g, ext, intr, bg, torch.float64), weights
+    ref = outputs_and_grads(_antialiased_reference_fn, leaf_tensors(g, ext, intr, bg, torch.float64), weights)
+    out = outputs_and_grads(
+        torch_fn(rasterize_mode="antialiased", chunk=5), leaf_tensors(g, ext, intr, bg, torch.float64), weights
     )
     for a, b in zip(out[0] + out[1], ref[0] + ref[1]):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
@@ -257,9 +230,9 @@ def test_pixels_that_stop_early_match_reference():
     ext, intr = cameras(1, 1)
     weights = [torch.rand(1, 1, c, H, W, dtype=torch.float64) for c in (3, 1, 1)]
     bg = torch.rand(1, 3, dtype=torch.float64)
-    ref_out, ref_grad = _outputs_and_grads(_reference_fn, _leaves(g, ext, intr, bg, torch.float64), weights)
-    out, grad = _outputs_and_grads(
-        _torch_fn(chunk=3, tile_size=8), _leaves(g, ext, intr, bg, torch.float64), weights
+    ref_out, ref_grad = outputs_and_grads(reference_fn, leaf_tensors(g, ext, intr, bg, torch.float64), weights)
+    out, grad = outputs_and_grads(
+        torch_fn(chunk=3, tile_size=8), leaf_tensors(g, ext, intr, bg, torch.float64), weights
     )
     trans = 1 - ref_out[2]
     assert ((trans > 1e-5) & (trans < 1e-3)).float().mean() > 0.2  # many pixels stopped near T = 1e-4
@@ -273,8 +246,8 @@ def test_compiled_kernels_match_eager():
     ext, intr = cameras(2, 2, dtype=torch.float32)
     weights = [torch.rand(2, 2, c, H, W) for c in (3, 1, 1)]
     bg = torch.rand(2, 3)
-    eager = _outputs_and_grads(_torch_fn(), _leaves(g, ext, intr, bg, torch.float32), weights)
-    compiled = _outputs_and_grads(_torch_fn(compile=True), _leaves(g, ext, intr, bg, torch.float32), weights)
+    eager = outputs_and_grads(torch_fn(), leaf_tensors(g, ext, intr, bg, torch.float32), weights)
+    compiled = outputs_and_grads(torch_fn(compile=True), leaf_tensors(g, ext, intr, bg, torch.float32), weights)
     for a, b in zip(eager[0] + eager[1], compiled[0] + compiled[1]):
         # Fused and eager float32 arithmetic may put a pixel that sits right at the 1/255 or 1e-4 threshold
         # on different sides of it; that moves a gradient entry by far less than 1e-3 of the tensor's scale.
