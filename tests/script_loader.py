@@ -6,10 +6,11 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = ROOT / "scripts"
-BENCHMARKS = ROOT / "benchmarks"
-DATA_PREP = ROOT / "data_prep"
+from tests.helpers import REPO
+
+SCRIPTS = REPO / "scripts"
+BENCHMARKS = REPO / "benchmarks"
+DATA_PREP = REPO / "data_prep"
 
 
 def load_script(name: str, folder: Path = SCRIPTS) -> ModuleType:

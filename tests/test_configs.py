@@ -7,7 +7,6 @@ The command lines are the ones the config files quote in their header comments (
 from __future__ import annotations
 
 import shlex
-from pathlib import Path
 
 import pytest
 import yaml
@@ -15,8 +14,8 @@ import yaml
 from aesplat import cli
 from aesplat.model import ModelConfig, NetConfig
 from aesplat.render import RasterizerConfig
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.filterwarnings("ignore:LightningCLI's args parameter")
 CONFIGS = sorted(str(p.relative_to(REPO)) for p in (REPO / "conf").rglob("*.yaml"))
 

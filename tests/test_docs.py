@@ -23,7 +23,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.helpers import REPO
+
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
 SUBCOMMANDS = ("fit", "validate", "test", "predict", "bench", "view", "export")
 APPS = {  # the commands with an argparse parser of their own, by module

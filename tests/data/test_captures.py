@@ -24,10 +24,10 @@ from aesplat.data.sampler import evaluation_sample
 from aesplat.data.sources.colmap import colmap_camera, read_colmap, read_colmap_cameras
 from aesplat.data.stream import read_tar
 from aesplat.data.synthetic_scenes import render_scene, sample_scene, scene_to_chunk_entry
+from tests.helpers import REPO
 
 from ..script_loader import DATA_PREP, load_script
 
-REPO = Path(__file__).resolve().parents[2]
 H, W = 48, 64
 FRAMES = 8
 SIZE = 32

@@ -10,9 +10,10 @@ import sys
 import pytest
 import torch
 
-from ..script_loader import ROOT, load_benchmark
+from tests.helpers import REPO
+from tests.script_loader import load_benchmark
 
-SMOKE = str(ROOT / "conf" / "smoke.yaml")
+SMOKE = str(REPO / "conf" / "smoke.yaml")
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +96,7 @@ def test_a_missing_reference_is_reported_before_any_work(bench, monkeypatch, cap
 
 
 def _suite(tmp_path, *parts, **env_vars):
-    script = ROOT / "benchmarks" / "gpu_throughput.sh"
+    script = REPO / "benchmarks" / "gpu_throughput.sh"
     env = {**os.environ, "PYTHON": sys.executable, **env_vars}
     return subprocess.run(["bash", str(script), str(tmp_path / "out"), *parts], env=env, capture_output=True,
                           text=True, timeout=900)  # fmt: skip

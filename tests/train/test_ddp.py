@@ -6,11 +6,10 @@ import os
 import socket
 import subprocess
 import sys
-from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import REPO
 
 
 def test_ddp_two_processes_on_cpu(smoke_shards, tmp_path):

@@ -6,15 +6,14 @@ a GPU the gsplat backend renders instead.
 """
 
 import csv
-from pathlib import Path
 
 import torch
 
 from aesplat import cli
+from tests.helpers import REPO
 
 from .host_syncs import HostSyncCounter
 
-REPO = Path(__file__).resolve().parents[2]
 STEPS, LOG_EVERY = 3, 2
 
 

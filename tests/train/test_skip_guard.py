@@ -11,8 +11,7 @@ from aesplat.train import module
 from aesplat.train.optim import OptimConfig
 from aesplat.train.skip_guard import PersistentNonFiniteSteps, SkipGuard, explain_non_finite_step
 from aesplat.types import RenderOutput
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import REPO
 
 
 class NaNGradient(torch.autograd.Function):
