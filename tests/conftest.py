@@ -4,6 +4,8 @@ import signal
 import pytest
 import torch
 
+from tests.helpers import make_shards
+
 os.environ.setdefault("WANDB_MODE", "disabled")
 torch.set_num_threads(min(2, torch.get_num_threads()))
 
@@ -11,6 +13,12 @@ torch.set_num_threads(min(2, torch.get_num_threads()))
 @pytest.fixture(autouse=True)
 def _seed():
     torch.manual_seed(0)
+
+
+@pytest.fixture(scope="session")
+def shards(tmp_path_factory):
+    """Shards of two training scenes and one test scene, 28 px, for the command-line tests."""
+    return make_shards(tmp_path_factory.mktemp("errors_data"), scenes=2, test_scenes=1, seed=1)
 
 
 @pytest.fixture

@@ -14,13 +14,11 @@ import numpy as np
 import torch
 from PIL import Image
 
-from tests.test_predict import IMAGE_SIZE, SH_DEGREE, write_tiny_checkpoint
+from tests.helpers import IMAGE_SIZE, write_tiny_checkpoint
 
 HEAD_OUTPUT = "model.appearance.view_dependent_head.net.7.weight"
 GAUSSIAN_OUTPUT_BIAS = "model.gaussian_head.out.bias"
 RED, BLUE = (220, 30, 30), (30, 30, 220)
-
-__all__ = ["IMAGE_SIZE", "SH_DEGREE", "make_prediction", "split_image", "write_view_dependent_checkpoint"]
 
 
 def write_view_dependent_checkpoint(run_dir: Path, gain: float = 100.0) -> Path:

@@ -17,7 +17,7 @@ from aesplat.model import build_model, dataset_cameras
 from aesplat.render import render
 from aesplat.train.metrics import psnr
 from aesplat.types import BatchedExample, BatchedViews
-from tests.test_predict import SH_DEGREE, write_tiny_checkpoint
+from tests.helpers import SH_DEGREE, make_shards, write_tiny_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
 
@@ -254,10 +254,7 @@ def test_write_report_files(tmp_path):
 
 def test_bench_command_end_to_end(tmp_path, pretend_gsplat):
     """On a (pretended) GPU node with `--device cpu`: the CPU tensors are rendered by the torch backend."""
-    from aesplat.data import convert_dataset, generate_dataset
-
-    generate_dataset(tmp_path / "src", scenes=1, test_scenes=2, frames=10, height=32, width=40, seed=0)
-    convert_dataset(tmp_path / "src", tmp_path / "shards", size=SIZE)
+    make_shards(tmp_path, SIZE, frames=10, height=32, width=40, scenes=1, test_scenes=2, seed=0)
     ckpt = write_tiny_checkpoint(tmp_path / "run", data_root=str(tmp_path / "shards"), image_size=SIZE)
     assert main(["--ckpt", str(ckpt), "--knobs", "render_size,min_opacity", "--render-scales", "1",
                  "--min-opacities", "0.5", "--scenes", "1", "--repeats", "1", "--warmup", "0",
@@ -278,11 +275,9 @@ def test_bench_command_end_to_end(tmp_path, pretend_gsplat):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_bench_command_on_cuda(tmp_path):
     """`aesplat bench --device cuda`: gsplat (if installed) and torch backends, fp32 and bf16, all measured."""
-    from aesplat.data import convert_dataset, generate_dataset
     from aesplat.render import gsplat_available
 
-    generate_dataset(tmp_path / "src", scenes=1, test_scenes=2, frames=10, height=32, width=40, seed=0)
-    convert_dataset(tmp_path / "src", tmp_path / "shards", size=SIZE)
+    make_shards(tmp_path, SIZE, frames=10, height=32, width=40, scenes=1, test_scenes=2, seed=0)
     ckpt = write_tiny_checkpoint(tmp_path / "run", data_root=str(tmp_path / "shards"), image_size=SIZE)
     assert main(["--ckpt", str(ckpt), "--device", "cuda", "--knobs", "backend,precision", "--scenes", "2",
                  "--repeats", "2", "--warmup", "1", "--process-warmup", "1", "--no-progress"]) == 0  # fmt: skip

@@ -19,7 +19,7 @@ from aesplat.checkpoint import (
 )
 from aesplat.errors import UserError
 from aesplat.model.weights import read_torch_file
-from tests.test_predict import write_tiny_checkpoint
+from tests.helpers import write_tiny_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore")
 

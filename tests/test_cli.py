@@ -13,9 +13,7 @@ import pytest
 import torch
 
 from aesplat import cli
-from aesplat.data import convert_dataset, generate_dataset
-
-REPO = Path(__file__).resolve().parents[1]
+from tests.helpers import REPO, make_shards
 
 
 def aesplat_command() -> list[str]:
@@ -35,10 +33,8 @@ def run_aesplat(*args: str, timeout: int = 400) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def shards(tmp_path_factory):
-    root = tmp_path_factory.mktemp("cli_data")
-    generate_dataset(root / "src", scenes=2, test_scenes=2, frames=12, height=48, width=64, seed=1)
-    convert_dataset(root / "src", root / "shards", size=28)
-    return root / "shards"
+    """Two test scenes here, not the suite's one."""
+    return make_shards(tmp_path_factory.mktemp("cli_data"), scenes=2, test_scenes=2, seed=1)
 
 
 def test_smoke_fit_then_test_writes_checkpoint_csv_and_json(shards, tmp_path):

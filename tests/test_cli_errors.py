@@ -15,20 +15,10 @@ from pathlib import Path
 import pytest
 
 from aesplat import cli
-from aesplat.data import convert_dataset, generate_dataset
 from aesplat.model.weights import export_weights
-from tests.test_predict import write_tiny_checkpoint
+from tests.helpers import REPO, aesplat, common, make_shards, one_line, write_tiny_checkpoint
 
-REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.filterwarnings("ignore")
-
-
-@pytest.fixture(scope="module")
-def shards(tmp_path_factory):
-    root = tmp_path_factory.mktemp("errors_data")
-    generate_dataset(root / "src", scenes=2, test_scenes=1, frames=12, height=48, width=64, seed=1)
-    convert_dataset(root / "src", root / "shards", size=28, progress=False)
-    return root / "shards"
 
 
 @pytest.fixture(scope="module")
@@ -42,32 +32,6 @@ def checkpoints(tmp_path_factory):
     garbage = folder / "garbage.ckpt"
     garbage.write_text("definitely not a checkpoint\n")
     return {"last": last, "exported": exported, "truncated": truncated, "garbage": garbage}
-
-
-def aesplat(capsys, *args: str) -> tuple[int, str]:
-    """Run `aesplat ARGS` in this process; (exit status, stderr + the SystemExit message)."""
-    with pytest.raises(SystemExit) as info:
-        cli.main(list(args))
-    code = info.value.code
-    err = capsys.readouterr().err
-    if isinstance(code, str):  # SystemExit("message"): Python prints it on stderr and exits with 1
-        return 1, err + code + "\n"
-    return code, err
-
-
-def one_line(text: str, after_start: bool = False) -> str:
-    """The only line of ``text`` (``after_start``: besides the thread policy's, printed when a run starts)."""
-    lines = [line for line in text.splitlines() if line.strip()]
-    if after_start:
-        lines = [line for line in lines if not line.startswith("aesplat: torch CPU threads")]
-    assert len(lines) == 1, text
-    assert "Traceback" not in text
-    return lines[0]
-
-
-def common(shards: Path, run_dir: Path) -> list[str]:
-    return ["-c", "conf/smoke.yaml", "--data.root", str(shards), "--trainer.default_root_dir", str(run_dir),
-            "--trainer.logger", "false"]  # fmt: skip
 
 
 @pytest.mark.parametrize("command", ["fit", "test", "validate"])
@@ -93,10 +57,7 @@ def test_fit_checks_the_split_validation_runs_on(tmp_path):
     validation shards must be there."""
     from jsonargparse import Namespace
 
-    generate_dataset(tmp_path / "src", scenes=2, test_scenes=1, val_scenes=1, frames=12, height=48, width=64,
-                     seed=1)  # fmt: skip
-    root = tmp_path / "shards"
-    convert_dataset(tmp_path / "src", root, size=28, progress=False)
+    root = make_shards(tmp_path, scenes=2, test_scenes=1, val_scenes=1, seed=1)
     manifest = json.loads((root / "manifest.json").read_text())
     del manifest["splits"]["test"]
     (root / "manifest.json").write_text(json.dumps(manifest))

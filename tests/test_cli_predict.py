@@ -16,9 +16,8 @@ import torch
 from PIL import Image
 
 from aesplat.predict import main
-from tests.test_predict import write_tiny_checkpoint
+from tests.helpers import REPO, write_tiny_checkpoint
 
-REPO = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.filterwarnings("ignore")
 
 

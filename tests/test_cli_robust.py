@@ -18,15 +18,10 @@ import torch
 
 from aesplat import cli
 from aesplat.train import AESplatModule
-from tests.test_cli_errors import REPO, aesplat, common, one_line, shards  # noqa: F401 - the fixture
-from tests.test_predict import write_tiny_checkpoint
-from tests.train.test_run_dir import hold_lock
+from tests.helpers import REPO, aesplat, common, one_line, tree, write_tiny_checkpoint
+from tests.train.helpers import hold_lock
 
 pytestmark = pytest.mark.filterwarnings("ignore")
-
-
-def tree(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture
@@ -36,7 +31,7 @@ def run(tmp_path) -> Path:
     return tmp_path / "run"
 
 
-def test_a_checkpoint_naming_a_class_never_instantiates_it(run, shards, capsys, tmp_path):  # noqa: F811
+def test_a_checkpoint_naming_a_class_never_instantiates_it(run, shards, capsys, tmp_path):
     victim = tmp_path / "victim.txt"
     victim.write_text("precious\n")
     ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)
@@ -52,7 +47,7 @@ def test_a_checkpoint_naming_a_class_never_instantiates_it(run, shards, capsys, 
     assert victim.read_text() == "precious\n" and tree(run) == before
 
 
-def test_last_is_checked_as_an_explicit_path_is(run, shards, capsys):  # noqa: F811
+def test_last_is_checked_as_an_explicit_path_is(run, shards, capsys):
     """`--ckpt_path last` goes through the same checkpoint check and names the --model.* flags the checkpoint
     overrides; a damaged newest file is skipped, and said so."""
     last = run / "checkpoints" / "last.ckpt"
@@ -68,7 +63,7 @@ def test_last_is_checked_as_an_explicit_path_is(run, shards, capsys):  # noqa: F
                 f"{run / 'hpc_ckpt_1.ckpt'} sets it to {saved}") in out.err  # fmt: skip
 
 
-def test_overwrite_never_deletes_an_input_inside_the_run_folder(shards, capsys, tmp_path):  # noqa: F811
+def test_overwrite_never_deletes_an_input_inside_the_run_folder(shards, capsys, tmp_path):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     (run / "checkpoints" / "last.ckpt").write_bytes(b"a run")
@@ -85,7 +80,7 @@ def test_overwrite_never_deletes_an_input_inside_the_run_folder(shards, capsys, 
     assert tree(run) == before
 
 
-def test_a_second_resume_of_a_run_in_training_is_refused(run, shards, capsys):  # noqa: F811
+def test_a_second_resume_of_a_run_in_training_is_refused(run, shards, capsys):
     holder, conn = hold_lock(run)
     try:
         before = tree(run)
@@ -112,7 +107,7 @@ def test_a_second_resume_of_a_run_in_training_is_refused(run, shards, capsys):  
         (["--model.optim.impl", "magic"], "unknown optim.impl 'magic'"),
     ],
 )
-def test_values_out_of_range_stop_before_anything_is_written(shards, capsys, tmp_path, flags, message):  # noqa: F811
+def test_values_out_of_range_stop_before_anything_is_written(shards, capsys, tmp_path, flags, message):
     run = tmp_path / "run"
     code, err = aesplat(capsys, "fit", *common(shards, run), *flags)
     line = one_line(err)
@@ -120,7 +115,7 @@ def test_values_out_of_range_stop_before_anything_is_written(shards, capsys, tmp
     assert not run.exists()
 
 
-def test_a_config_file_that_is_not_yaml_is_one_line(shards, capsys, tmp_path):  # noqa: F811
+def test_a_config_file_that_is_not_yaml_is_one_line(shards, capsys, tmp_path):
     tabbed = tmp_path / "tabbed.yaml"
     tabbed.write_text("model:\n\tnet:\n    size: tiny\n")
     code, err = aesplat(capsys, "fit", *common(shards, tmp_path / "run"), "-c", str(tabbed))
@@ -142,7 +137,7 @@ class FailsAtTheFirstStep(AESplatModule):
         raise RuntimeError("the first step failed")
 
 
-def test_a_fit_that_fails_before_its_first_checkpoint_leaves_nothing(shards, capsys, tmp_path):  # noqa: F811
+def test_a_fit_that_fails_before_its_first_checkpoint_leaves_nothing(shards, capsys, tmp_path):
     run = tmp_path / "run"
     argv = ["fit", *common(shards, run), "--seed_everything", "false"]
     with pytest.raises(RuntimeError, match="the first step failed"):
@@ -151,11 +146,11 @@ def test_a_fit_that_fails_before_its_first_checkpoint_leaves_nothing(shards, cap
     assert not run.exists()  # so the corrected command is not refused as "already holds a run"
 
 
-def test_a_fit_stopped_by_sigterm_saves_where_it_stopped_and_exits_143(shards, capsys, tmp_path):  # noqa: F811
+def test_a_fit_stopped_by_sigterm_saves_where_it_stopped_and_exits_143(shards, capsys, tmp_path):
     run = tmp_path / "run"
     overlay = tmp_path / "stop.yaml"
     overlay.write_text(
-        "trainer:\n  callbacks:\n    - class_path: tests.train.test_signals.SignalDuringStep\n"
+        "trainer:\n  callbacks:\n    - class_path: tests.train.helpers.SignalDuringStep\n"
         f"      init_args:\n        at: 1\n        signum: {int(signal.SIGTERM)}\n"
     )
     code, err = aesplat(capsys, "fit", *common(shards, run), "-c", str(overlay), "--trainer.max_steps", "50",
@@ -177,7 +172,7 @@ def start_fit_held(data: Path, tmp_path: Path, launch: list[str], validation: bo
     run, ready, err = tmp_path / "run", tmp_path / "ready", tmp_path / "stderr"
     overlay = tmp_path / "hold.yaml"
     overlay.write_text(
-        "trainer:\n  callbacks:\n    - class_path: tests.train.test_signals.HoldUntilStopSignal\n"
+        "trainer:\n  callbacks:\n    - class_path: tests.train.helpers.HoldUntilStopSignal\n"
         f"      init_args:\n        ready: {ready}\n        at: {0 if validation else 1}\n"
         f"        validation: {str(validation).lower()}\n"
     )
@@ -232,7 +227,7 @@ def assert_stopped_and_saved(proc, run: Path, err: Path, step: int) -> None:
 
 
 @pytest.mark.parametrize("validation", [False, True], ids=["training", "validation"])
-def test_sigterm_to_the_whole_process_group_saves_and_exits_143(shards, tmp_path, validation):  # noqa: F811
+def test_sigterm_to_the_whole_process_group_saves_and_exits_143(shards, tmp_path, validation):
     """What `kill -TERM -PGID`, systemd and SLURM do: every process of the run gets the signal, the data-loader
     workers (of training and of validation) too. They must outlive it, for the step under way to finish."""
     proc, run, err = start_fit_held(shards, tmp_path, [], validation)
@@ -240,7 +235,7 @@ def test_sigterm_to_the_whole_process_group_saves_and_exits_143(shards, tmp_path
     assert_stopped_and_saved(proc, run, err, step=4 if validation else 2)
 
 
-def test_a_time_limit_of_timeout_saves_and_exits_143(shards, tmp_path):  # noqa: F811
+def test_a_time_limit_of_timeout_saves_and_exits_143(shards, tmp_path):
     """`timeout -s TERM N aesplat fit ...` sends SIGTERM to its whole process group when the time is up
     (`--preserve-status`: its own status is then the fit's, not 124). The time is up when the fit holds in step
     2: the test sends `timeout` the SIGALRM by which its own timer tells it so."""
@@ -251,7 +246,7 @@ def test_a_time_limit_of_timeout_saves_and_exits_143(shards, tmp_path):  # noqa:
     assert_stopped_and_saved(proc, run, err, step=2)
 
 
-def test_sigterm_to_every_process_of_a_job_wandb_included_saves_and_exits_143(shards, tmp_path):  # noqa: F811
+def test_sigterm_to_every_process_of_a_job_wandb_included_saves_and_exits_143(shards, tmp_path):
     """What `scancel` and a SLURM time limit do to a job that logs to wandb: SIGTERM reaches wandb's service
     process too (it runs in a session of its own, so a process group signal misses it; a job's does not). The
     next log then fails; that once stopped the fit in the middle of the step, with nothing saved."""

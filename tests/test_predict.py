@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import yaml
 from PIL import Image
 
 from aesplat.camera_path import interpolate_cameras, slerp
@@ -17,38 +16,9 @@ from aesplat.errors import UserError
 from aesplat.geometry import make_pose, matrix_to_quat, quat_to_matrix
 from aesplat.images import colorize_depth, load_image, model_image_shape
 from aesplat.predict import main
+from tests.helpers import IMAGE_SIZE, SH_DEGREE, tree, write_tiny_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
-
-IMAGE_SIZE = 28
-SH_DEGREE = 2
-
-
-def write_tiny_checkpoint(
-    run_dir: Path, data_root: str = "unused", image_size: int = IMAGE_SIZE, cameras: str = "predicted", **net
-) -> Path:
-    """A random-init tiny model saved by a real Lightning Trainer, plus the run's config.yaml (as `aesplat fit`
-    lays them out: RUN/checkpoints/last.ckpt, RUN/config.yaml). ``net``: more ``model.net`` settings."""
-    from lightning.pytorch import Trainer
-
-    from aesplat.train import AESplatModule, EvalConfig, LossConfig, NetConfig
-
-    module = AESplatModule(
-        net=NetConfig(size="tiny", sh_degree=SH_DEGREE, near=0.1, far=20.0, **net),
-        loss=LossConfig(lpips_weight=0.0),
-        eval=EvalConfig(metrics_lpips=False),
-        cameras=cameras,
-    )
-    trainer = Trainer(logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                      enable_model_summary=False, accelerator="cpu")  # fmt: skip
-    trainer.strategy.connect(module)
-    ckpt = run_dir / "checkpoints" / "last.ckpt"
-    ckpt.parent.mkdir(parents=True, exist_ok=True)
-    trainer.save_checkpoint(ckpt, weights_only=True)
-    # data.near / far as runs wrote them before the depth range became the model's alone: still read
-    data = {"root": data_root, "image_size": image_size, "near": 0.1, "far": 20.0, "eval_batch_size": 1}
-    (run_dir / "config.yaml").write_text(yaml.safe_dump({"data": data}))
-    return ckpt
 
 
 @pytest.fixture(scope="module")
@@ -440,10 +410,6 @@ def test_a_decompression_bomb_is_refused_in_one_line(tiny_ckpt, tmp_path, monkey
 
 
 # ----------------------------------------------------------------------------------------------- output folder
-
-
-def tree(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def test_a_non_empty_output_folder_is_refused_before_the_model_loads(tmp_path):

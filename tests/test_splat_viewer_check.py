@@ -14,7 +14,6 @@ off, 30-32 dB; the 2D filter of the other rasterize mode, 34-37 dB.
 import importlib.util
 import json
 import math
-import os
 import shutil
 from dataclasses import asdict
 from pathlib import Path
@@ -33,20 +32,14 @@ from aesplat.images import save_image
 from aesplat.predict import compact_json
 from aesplat.render import RenderSettings, render
 from aesplat.types import Gaussians
+from tests.helpers import need
 from tests.script_loader import load_script
 
 check = load_script("splat_viewer_check")
-IN_CI = os.environ.get("CI", "").lower() in ("1", "true")
 WIDTH, HEIGHT = 64, 48
 INTRINSICS = torch.tensor([[0.95, 0.0, 0.46], [0.0, 1.2, 0.54], [0.0, 0.0, 1.0]])  # fx 61 px, fy 58 px
 BACKGROUND = (0.15, 0.25, 0.45)
 MIN_PSNR_DB = 40.0
-
-
-def need(available: bool, what: str) -> None:
-    """Skip without ``what`` on a developer's machine; fail in CI, which installs it."""
-    if not available:
-        (pytest.fail if IN_CI else pytest.skip)(f"{what} is not installed")
 
 
 def rotation(axis: list[float], degrees: float) -> Tensor:

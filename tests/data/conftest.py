@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from aesplat.data import convert_dataset, generate_dataset
+from tests.helpers import make_shards
 
 FRAMES = 12
 HEIGHT, WIDTH = 48, 64
@@ -12,15 +12,12 @@ SIZE = 28
 
 
 @pytest.fixture(scope="session")
-def synthetic_src(tmp_path_factory):
-    out = tmp_path_factory.mktemp("synthetic")
-    generate_dataset(out, scenes=6, test_scenes=5, frames=FRAMES, height=HEIGHT, width=WIDTH, seed=3,
-                     scenes_per_chunk=2)  # fmt: skip
-    return out
+def synthetic_shards(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synthetic")
+    return make_shards(root, SIZE, FRAMES, HEIGHT, WIDTH, scenes=6, test_scenes=5, seed=3, scenes_per_chunk=2)
 
 
 @pytest.fixture(scope="session")
-def synthetic_shards(synthetic_src, tmp_path_factory):
-    out = tmp_path_factory.mktemp("shards")
-    convert_dataset(synthetic_src, out, size=SIZE, progress=False)
-    return out
+def synthetic_src(synthetic_shards):
+    """The source chunks of ``synthetic_shards``."""
+    return synthetic_shards.parent / "src"

@@ -20,8 +20,8 @@ from aesplat.data.stream import read_tar, sample_keys
 from aesplat.data.synthetic_scenes import render_scene, sample_scene
 from aesplat.errors import UserError
 from aesplat.geometry import project_points, unproject_depth
-
-from ..script_loader import DATA_PREP, load_script
+from tests.helpers import ODD_KEYS
+from tests.script_loader import DATA_PREP, load_script
 
 H, W = 48, 64  # landscape source: the centre crop keeps columns 8..56
 SIZE = 32
@@ -511,11 +511,6 @@ def test_long_scenes_convert_whole_or_strided(tmp_path):
         assert torch.all(b.context.index % 3 == 0) and torch.all((b.gap >= 25) & (b.gap <= 45))
         assert torch.equal(b.context.index[:, 1] - b.context.index[:, 0], 3 * b.gap)  # gaps count kept frames
         assert torch.allclose(b.context.extrinsics[:, :, 0, 3], b.context.index.float() * 3.0 / (frames - 1))
-
-
-# Every character a file system allows in a name: a key survives conversion intact, or is refused by name.
-ODD_KEYS = ["room one", "kitchen/2", "ünïcødé-日本", "x" * 300, "line\nbreak", 'a,b"c', "-leading", "..",
-            "CASE", "case"]  # fmt: skip
 
 
 def test_scene_keys_of_any_characters_survive_conversion_or_are_refused_by_name(tmp_path, scene, capsys):

@@ -1,10 +1,62 @@
-"""Test-only Lightning callbacks, importable by the processes a DDP launch starts."""
+"""What the training tests share: the smoke config's module, data and trainer, a run folder locked by another
+process, and test-only Lightning callbacks (importable by the processes a DDP or SLURM launch starts)."""
 
 import json
+import multiprocessing
 import os
+import signal
+import threading
+import time
 from pathlib import Path
 
+import lightning as L
 from lightning.pytorch import Callback
+from omegaconf import OmegaConf
+
+from aesplat.data import DataModule
+from aesplat.train import AESplatModule
+from aesplat.train.run_dir import lock_run
+from aesplat.train.signals import REQUEUE_SIGNAL, SignalsAtStepBoundary
+from tests.helpers import REPO
+
+SMOKE = REPO / "conf" / "smoke.yaml"
+
+
+def smoke_config() -> dict:
+    return OmegaConf.to_container(OmegaConf.load(SMOKE), resolve=True)
+
+
+def make_module(**overrides) -> AESplatModule:
+    model = smoke_config()["model"]
+    for key, value in overrides.items():
+        model[key] = {**model.get(key, {}), **value} if isinstance(value, dict) else value
+    return AESplatModule(**model)
+
+
+def make_data(root, **overrides) -> DataModule:
+    return DataModule(**{**smoke_config()["data"], "root": str(root), **overrides})
+
+
+def make_trainer(max_steps: int, tmp_path, callbacks=(), **kwargs) -> L.Trainer:
+    return L.Trainer(accelerator="cpu", devices=1, max_steps=max_steps, logger=False, callbacks=list(callbacks),
+                     enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
+                     limit_val_batches=0, default_root_dir=str(tmp_path), **kwargs)  # fmt: skip
+
+
+def hold_lock(run: Path):
+    """A forked process that holds ``run``'s lock until the returned connection is closed (fork: no imports)."""
+    context = multiprocessing.get_context("fork")
+    here, there = context.Pipe()
+
+    def hold(conn) -> None:
+        lock_run(run)
+        conn.send("locked")
+        conn.poll(120)  # until the test says it is done (or two minutes)
+
+    process = context.Process(target=hold, args=(there,), daemon=True)
+    process.start()
+    assert here.recv() == "locked"
+    return process, here
 
 
 class RecordTrainingScenes(Callback):
@@ -50,11 +102,53 @@ class HoldUntilRequeueSignal(Callback):
         self.at, self.timeout = at, timeout
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx: int) -> None:
-        import signal
-        import time
-
         if trainer.global_step != self.at or os.environ.get("SLURM_RESTART_COUNT", "0") != "0":
             return
         deadline = time.monotonic() + self.timeout
         while signal.SIGUSR1 not in signal.sigpending() and time.monotonic() < deadline:
             time.sleep(0.05)
+
+
+class SignalDuringStep(Callback):
+    """Send ``signum`` (the requeue signal unless given) to the main thread at the start of training batch
+    ``at`` (mid-step), and with ``again`` a second time at the end of that step; ``steps_after``: the global
+    steps of the batches that started after it."""
+
+    def __init__(self, at: int, signum: int = REQUEUE_SIGNAL, again: bool = False) -> None:
+        self.at, self.signum, self.again = at, signum, again
+        self.steps_after: list[int] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if batch_idx == self.at:
+            signal.pthread_kill(threading.main_thread().ident, self.signum)
+        elif batch_idx > self.at:
+            self.steps_after.append(trainer.global_step)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if batch_idx == self.at and self.again:
+            signal.pthread_kill(threading.main_thread().ident, self.signum)
+
+
+class HoldUntilStopSignal(Callback):
+    """At the start of training batch ``at`` (with ``validation``: of validation batch ``at``), write the file
+    ``ready`` and wait until the fit has a stop signal, at most ``timeout`` seconds. A test that signals the
+    process (or its whole process group, data-loader workers included) once ``ready`` is there knows that
+    training runs, and that the signal comes during that step; the training itself is unchanged."""
+
+    def __init__(self, ready: str, at: int = 1, validation: bool = False, timeout: float = 300.0) -> None:
+        self.ready, self.at, self.validation, self.timeout = Path(ready), at, validation, timeout
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if not self.validation and batch_idx == self.at:
+            self._hold(trainer)
+
+    def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0):
+        if self.validation and batch_idx == self.at and not trainer.sanity_checking:
+            self._hold(trainer)
+
+    def _hold(self, trainer) -> None:
+        signals = next(c for c in trainer.callbacks if isinstance(c, SignalsAtStepBoundary))
+        self.ready.write_text(f"{os.getpid()}\n")
+        deadline = time.monotonic() + self.timeout
+        while signals.stop_signal is None and time.monotonic() < deadline:
+            time.sleep(0.05)  # the stop signal's handler runs here, in the main thread

@@ -19,10 +19,8 @@ import torch
 from aesplat.files import PARTIAL_SUFFIX, atomic_write
 from aesplat.train.callbacks import RunCheckpoint
 from aesplat.train.checkpoint_io import AtomicCheckpointIO
-
-from .test_module import make_data, make_module, make_trainer
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.helpers import REPO
+from tests.train.helpers import make_data, make_module, make_trainer
 
 
 def state(step: int) -> dict:

@@ -3,7 +3,6 @@ batches): a ``pool`` network takes them all, a ``concat`` one is refused in one 
 
 import csv
 import json
-from pathlib import Path
 from types import SimpleNamespace
 
 import lightning as L
@@ -18,11 +17,10 @@ from aesplat.train import AESplatModule
 from aesplat.train.evaluation import summarize
 from aesplat.train.module import context_view_counts
 from aesplat.types import BatchedExample, BatchedViews
-
-from .test_module import make_trainer
+from tests.helpers import REPO
+from tests.train.helpers import make_trainer
 
 SIZE = 28
-REPO = Path(__file__).resolve().parents[2]
 
 
 def _views(b: int, v: int, gen: torch.Generator, first_frame: int) -> BatchedViews:

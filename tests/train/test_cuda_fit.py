@@ -6,8 +6,7 @@ import torch
 from lightning.pytorch import Callback
 
 from aesplat.render import gsplat_available, interface
-
-from .test_module import make_data, make_module
+from tests.train.helpers import make_data, make_module
 
 pytestmark = [
     pytest.mark.gpu,

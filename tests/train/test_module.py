@@ -1,44 +1,19 @@
 """The LightningModule on real (tiny) data: NaN-safe steps, overfitting one batch, exact resume."""
 
 import warnings
-from pathlib import Path
 
 import lightning as L
 import pytest
 import torch
 from lightning.pytorch import Callback
 from lightning.pytorch.callbacks import ModelCheckpoint
-from omegaconf import OmegaConf
 
-from aesplat.data import DataModule
 from aesplat.model import dataset_cameras
 from aesplat.render import render
 from aesplat.train import AESplatModule
 from aesplat.train.metrics import psnr
 from aesplat.train.optim import OptimConfig, build_optimizer
-
-SMOKE = Path(__file__).resolve().parents[2] / "conf" / "smoke.yaml"
-
-
-def smoke_config() -> dict:
-    return OmegaConf.to_container(OmegaConf.load(SMOKE), resolve=True)
-
-
-def make_module(**overrides) -> AESplatModule:
-    model = smoke_config()["model"]
-    for key, value in overrides.items():
-        model[key] = {**model.get(key, {}), **value} if isinstance(value, dict) else value
-    return AESplatModule(**model)
-
-
-def make_data(root, **overrides) -> DataModule:
-    return DataModule(**{**smoke_config()["data"], "root": str(root), **overrides})
-
-
-def make_trainer(max_steps: int, tmp_path, callbacks=(), **kwargs) -> L.Trainer:
-    return L.Trainer(accelerator="cpu", devices=1, max_steps=max_steps, logger=False, callbacks=list(callbacks),
-                     enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0,
-                     limit_val_batches=0, default_root_dir=str(tmp_path), **kwargs)  # fmt: skip
+from tests.train.helpers import make_data, make_module, make_trainer
 
 
 def snapshot(module: AESplatModule, optimizer) -> tuple[list, dict]:

@@ -5,10 +5,9 @@ import json
 import torch
 
 from aesplat.geometry import quat_to_matrix
-
-from ..script_loader import load_script
-from ..test_predict import write_tiny_checkpoint
-from .test_module import make_data, smoke_config
+from tests.helpers import write_tiny_checkpoint
+from tests.script_loader import load_script
+from tests.train.helpers import make_data, smoke_config
 
 
 def test_yaw_helpers_round_trip():

@@ -1,13 +1,11 @@
 """Run directories: the wandb run id is fixed per directory, wandb mode, one fit at a time (the lock), and a fit
 that stops before its first checkpoint takes back what it wrote."""
 
-import multiprocessing
-from pathlib import Path
-
 import pytest
 
 from aesplat.errors import UserError
 from aesplat.train.run_dir import FitWrites, lock_run, run_artifacts, unlock_run, wandb_mode, wandb_run_id
+from tests.train.helpers import hold_lock
 
 
 def test_wandb_run_id_is_created_once_per_directory(tmp_path):
@@ -24,22 +22,6 @@ def test_wandb_mode_environment_wins(monkeypatch):
     assert wandb_mode("disabled") == "disabled"
     # An unreachable server means offline (a reserved TEST-NET address never answers).
     assert wandb_mode("auto", host="192.0.2.1", timeout=0.2) == "offline"
-
-
-def hold_lock(run: Path):
-    """A forked process that holds ``run``'s lock until the returned connection is closed (fork: no imports)."""
-    context = multiprocessing.get_context("fork")
-    here, there = context.Pipe()
-
-    def hold(conn) -> None:
-        lock_run(run)
-        conn.send("locked")
-        conn.poll(120)  # until the test says it is done (or two minutes)
-
-    process = context.Process(target=hold, args=(there,), daemon=True)
-    process.start()
-    assert here.recv() == "locked"
-    return process, here
 
 
 def test_a_second_fit_in_a_run_folder_is_refused_while_the_first_trains(tmp_path):

@@ -5,7 +5,7 @@ import csv
 
 from aesplat.train.evaluation import write_results
 from aesplat.train.module import render_name
-from tests.data.test_shards import ODD_KEYS
+from tests.helpers import ODD_KEYS
 
 KEYS = [*ODD_KEYS, "room.one", "room_one", "Room_One", "ü" * 200, ".hidden", "", "a~1", "a_1"]
 

@@ -8,9 +8,6 @@ thing, two ranks and a requeued job, is tests/train/test_slurm_jobs.py).
 
 import os
 import signal
-import threading
-import time
-from pathlib import Path
 
 import lightning as L
 import pytest
@@ -20,59 +17,13 @@ from lightning.pytorch import Callback
 from aesplat.errors import Stopped
 from aesplat.train.callbacks import RunCheckpoint
 from aesplat.train.signals import REQUEUE_SIGNAL, SignalsAtStepBoundary
-
-from .test_module import make_data, make_module, make_trainer
+from tests.train.helpers import SignalDuringStep, make_data, make_module, make_trainer
 
 SLURM_TASK = {
     "SLURM_JOB_ID": "77", "SLURM_JOB_NAME": "aesplat-train", "SLURM_NTASKS": "1", "SLURM_NTASKS_PER_NODE": "1",
     "SLURM_NNODES": "1", "SLURM_NODELIST": "localhost", "SLURM_PROCID": "0", "SLURM_LOCALID": "0",
     "SLURM_NODEID": "0",
 }  # fmt: skip
-
-
-class SignalDuringStep(Callback):
-    """Send ``signum`` (the requeue signal unless given) to the main thread at the start of training batch
-    ``at`` (mid-step), and with ``again`` a second time at the end of that step; ``steps_after``: the global
-    steps of the batches that started after it."""
-
-    def __init__(self, at: int, signum: int = REQUEUE_SIGNAL, again: bool = False) -> None:
-        self.at, self.signum, self.again = at, signum, again
-        self.steps_after: list[int] = []
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        if batch_idx == self.at:
-            signal.pthread_kill(threading.main_thread().ident, self.signum)
-        elif batch_idx > self.at:
-            self.steps_after.append(trainer.global_step)
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        if batch_idx == self.at and self.again:
-            signal.pthread_kill(threading.main_thread().ident, self.signum)
-
-
-class HoldUntilStopSignal(Callback):
-    """At the start of training batch ``at`` (with ``validation``: of validation batch ``at``), write the file
-    ``ready`` and wait until the fit has a stop signal, at most ``timeout`` seconds. A test that signals the
-    process (or its whole process group, data-loader workers included) once ``ready`` is there knows that
-    training runs, and that the signal comes during that step; the training itself is unchanged."""
-
-    def __init__(self, ready: str, at: int = 1, validation: bool = False, timeout: float = 300.0) -> None:
-        self.ready, self.at, self.validation, self.timeout = Path(ready), at, validation, timeout
-
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
-        if not self.validation and batch_idx == self.at:
-            self._hold(trainer)
-
-    def on_validation_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0):
-        if self.validation and batch_idx == self.at and not trainer.sanity_checking:
-            self._hold(trainer)
-
-    def _hold(self, trainer) -> None:
-        signals = next(c for c in trainer.callbacks if isinstance(c, SignalsAtStepBoundary))
-        self.ready.write_text(f"{os.getpid()}\n")
-        deadline = time.monotonic() + self.timeout
-        while signals.stop_signal is None and time.monotonic() < deadline:
-            time.sleep(0.05)  # the stop signal's handler runs here, in the main thread
 
 
 @pytest.fixture

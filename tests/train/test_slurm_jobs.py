@@ -8,107 +8,27 @@ Skipped when no cluster answers, except in CI (CI=true), where that is a failure
 
 import csv
 import json
-import os
-import re
-import shutil
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 import torch
 
-REPO = Path(__file__).resolve().parents[2]
-SLURM = REPO / "slurm"
-CLUSTER_CONF = Path(os.environ.get("AESPLAT_SLURM_DIR", "/tmp/aesplat-slurm")) / "slurm.conf"
-STEPS = 6  # per training job; last.ckpt every 2 steps
+from tests.train.slurm_cluster import (
+    CPU_JOB,
+    FINAL_STATES,
+    STEPS,
+    job_info,
+    sbatch,
+    wait_for_end,
+    wait_until,
+    weights,
+)
+
 PREEMPT_AT = 2  # the preempted job holds before this step (after last.ckpt of step 2) until it is signalled
-CPU_JOB = ["--gpus-per-node=0", "--ntasks-per-node=2", "--cpus-per-task=1"]
-FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "BOOT_FAIL"}
-# A file to which every submission appends {"role": ..., "job_id": ...} as a line of JSON, when set:
-# benchmarks/slurm_jobs.py learns from it which job was which (it reads their times from slurmctld's log).
-RECORD_JOBS = os.environ.get("AESPLAT_SLURM_RECORD_JOBS")
 
 pytestmark = pytest.mark.slurm
-
-
-@pytest.fixture(scope="module")
-def job_env() -> dict[str, str]:
-    """Environment of the submitting process (sbatch hands it to the job): cluster, CPU mode, offline wandb."""
-    conf = os.environ.get("SLURM_CONF") or str(CLUSTER_CONF)
-    problem = None
-    if shutil.which("sbatch") is None:
-        problem = "SLURM's client commands are not installed"
-    else:
-        try:
-            proc = subprocess.run(["sinfo", "-h", "-o", "%T"], env={**os.environ, "SLURM_CONF": conf},
-                                  capture_output=True, text=True, timeout=30)  # fmt: skip
-        except subprocess.TimeoutExpired:  # a configuration whose controller is not running
-            problem = f"no SLURM cluster answers at {conf} (sinfo waited 30 s)"
-        else:
-            if proc.returncode != 0 or not proc.stdout.strip():
-                problem = f"no SLURM cluster answers at {conf} ({proc.stderr.strip()[-200:]})"
-    if problem:
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"{problem}; CI must start one (slurm/local_cluster.sh start, see .ci/run)")
-        pytest.skip(f"{problem}: start one with `slurm/local_cluster.sh start`, or run `make test-slurm`")
-    return {
-        **os.environ,
-        "SLURM_CONF": conf,
-        "AESPLAT": str(Path(sys.executable).parent / "aesplat"),
-        "AESPLAT_SLURM_CPU": "1",
-        "PYTHONPATH": f"{REPO / 'src'}:{REPO}",  # this checkout, and tests.train.helpers for the recorder
-        "WANDB_MODE": "offline",
-        # A stale rendezvous address in the submitting shell (an earlier torchrun, or Lightning's own
-        # SLURMEnvironment in this process) must not reach the ranks: train.sbatch drops it.
-        "MASTER_ADDR": "stale-host.invalid",
-        "MASTER_PORT": "1",
-    }
-
-
-def sbatch(env: dict, script: str, options: list[str], args: list[str], log: Path, role: str) -> str:
-    """Submit ``slurm/<script>`` from the repository root; returns the job id. ``role``: what the job is
-    for (uninterrupted, preempted, eval, mismatch), recorded with its id when AESPLAT_SLURM_RECORD_JOBS asks."""
-    command = ["sbatch", "--parsable", f"--output={log}", *options, str(SLURM / script), *args]
-    proc = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
-    assert proc.returncode == 0, proc.stderr
-    job_id = proc.stdout.strip().split(";")[0]
-    if RECORD_JOBS:
-        with open(RECORD_JOBS, "a") as record:
-            record.write(json.dumps({"role": role, "job_id": job_id}) + "\n")
-    return job_id
-
-
-def job_info(env: dict, job_id: str) -> dict[str, str]:
-    """``scontrol show job`` as a dict (JobState, Restarts, ExitCode, ...)."""
-    proc = subprocess.run(["scontrol", "show", "job", "-o", job_id], env=env, capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
-    return dict(re.findall(r"(\w+)=(\S*)", proc.stdout))
-
-
-def wait_until(condition, what: str, timeout: float = 1200.0, every: float = 0.5):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        result = condition()
-        if result:
-            return result
-        time.sleep(every)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
-
-
-def wait_for_end(env: dict, job_id: str, log: Path) -> dict[str, str]:
-    def ended():
-        info = job_info(env, job_id)
-        return info if info["JobState"] in FINAL_STATES else None
-
-    try:
-        info = wait_until(ended, f"job {job_id} to end")
-    except AssertionError:
-        subprocess.run(["scancel", job_id], env=env)  # do not leave it to hold the node for the next tests
-        raise
-    info["log"] = log.read_text() if log.exists() else ""
-    return info
 
 
 def fit_args(shards: Path, run_dir: Path, record: Path, tmp_path: Path, hold_at: int | None = None) -> list:
@@ -133,11 +53,6 @@ def fit_args(shards: Path, run_dir: Path, record: Path, tmp_path: Path, hold_at:
 
 def records(folder: Path) -> list[dict]:
     return [json.loads((folder / f"rank{r}.json").read_text()) for r in (0, 1)]
-
-
-def weights(path: Path) -> dict[str, torch.Tensor]:
-    ckpt = torch.load(path, weights_only=True, map_location="cpu")
-    return {"global_step": ckpt["global_step"], **ckpt["state_dict"]}
 
 
 def wandb_run_ids(run_dir: Path) -> list[str]:

@@ -1,17 +1,16 @@
 """slurm/train.sbatch cancelled on a real SLURM cluster (slurm/local_cluster.sh, CPU): `scancel`, like a time
 limit without a requeue, sends SIGTERM to every process of the job. Skipped when no cluster answers, except in
-CI (CI=true), where that is a failure (tests/train/test_slurm_jobs.py, whose helpers these are).
+CI (CI=true), where that is a failure (as in tests/train/test_slurm_jobs.py).
 """
 
 import subprocess
 
 import pytest
 
-from tests.train.test_slurm_jobs import (  # noqa: F401 - job_env is the fixture
+from tests.train.slurm_cluster import (
     CPU_JOB,
     FINAL_STATES,
     STEPS,
-    job_env,
     job_info,
     sbatch,
     wait_for_end,
@@ -22,14 +21,14 @@ from tests.train.test_slurm_jobs import (  # noqa: F401 - job_env is the fixture
 pytestmark = pytest.mark.slurm
 
 
-def test_a_cancelled_job_saves_where_it_stopped(job_env, smoke_shards, tmp_path):  # noqa: F811
+def test_a_cancelled_job_saves_where_it_stopped(job_env, smoke_shards, tmp_path):
     """`scancel` sends SIGTERM to every process of the job, the data-loader workers and wandb's service
     included: the step under way finishes on both ranks, last.ckpt is saved at that step and the fit says so.
-    The job holds in step 2 (tests.train.test_signals.HoldUntilStopSignal) until it has the signal."""
+    The job holds in step 2 (tests.train.helpers.HoldUntilStopSignal) until it has the signal."""
     run_dir, ready, log = tmp_path / "run", tmp_path / "ready", tmp_path / "job.out"
     overlay = tmp_path / "hold.yaml"
     overlay.write_text(
-        "trainer:\n  callbacks:\n    - class_path: tests.train.test_signals.HoldUntilStopSignal\n"
+        "trainer:\n  callbacks:\n    - class_path: tests.train.helpers.HoldUntilStopSignal\n"
         f"      init_args:\n        ready: {ready}\n        at: 1\n"
     )
     # One data-loader worker per rank: with more, a rank would get none of the smoke data's two validation

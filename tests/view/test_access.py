@@ -22,8 +22,9 @@ import pytest
 import torch
 
 from aesplat.errors import UserError
+from tests.helpers import need
 from tests.prediction_helpers import make_prediction
-from tests.view.test_viewer import browser, need, need_viser, wait_for
+from tests.view.helpers import browser, need_viser, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
 

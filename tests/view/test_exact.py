@@ -12,7 +12,8 @@ from aesplat.inference import predict_scene, render_views
 from aesplat.view.camera import viewpoint_of
 from aesplat.view.exact import render_viewpoint
 from aesplat.view.scene import scene_from_checkpoint, scene_from_path
-from tests.prediction_helpers import IMAGE_SIZE, SH_DEGREE, make_prediction
+from tests.helpers import IMAGE_SIZE, SH_DEGREE
+from tests.prediction_helpers import make_prediction
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
 

@@ -3,7 +3,6 @@
 import importlib.util
 import io
 import json
-import os
 import select
 import signal
 import socket
@@ -18,22 +17,11 @@ import pytest
 from PIL import Image
 
 from aesplat.view.command import main as view_main
+from tests.helpers import need
 from tests.prediction_helpers import BLUE, RED, make_prediction
-from tests.script_loader import load_script
+from tests.view.helpers import browser, need_viser, wait_for
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
-browser = load_script("headless_chromium")
-IN_CI = os.environ.get("CI", "").lower() in ("1", "true")
-
-
-def need(available: bool, what: str) -> None:
-    """Skip without ``what`` on a developer's machine; fail in CI, which installs it (Makefile, .ci/run)."""
-    if not available:
-        (pytest.fail if IN_CI else pytest.skip)(f"{what} is not installed")
-
-
-def need_viser() -> None:
-    need(importlib.util.find_spec("viser") is not None, 'viser (pip install -e ".[viewer]")')
 
 
 @pytest.fixture(scope="module")
@@ -43,16 +31,6 @@ def prediction(tmp_path_factory):
 
 def snapshot(folder) -> dict:
     return {p: p.stat().st_mtime_ns for p in folder.rglob("*")}
-
-
-def wait_for(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value is not None and value is not False and not (isinstance(value, dict) and not value):
-            return value
-        time.sleep(0.25)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 def free_port_closed(port: int) -> bool:
