@@ -284,6 +284,7 @@ def run(module: AESplatModule, datamodule: DataModule, device: torch.device, ste
         benchmark=trainer_cfg.get("benchmark"), logger=False, callbacks=[timer], enable_checkpointing=False,
         enable_progress_bar=False, enable_model_summary=False, num_sanity_val_steps=0, limit_val_batches=0,
     )  # fmt: skip
+    module.step_tracker = datamodule.step_tracker
     trainer.fit(module, datamodule)
     records = [
         {"step": i, "warmup": int(i < warmup), "seconds": took, "loss": loss}

@@ -28,8 +28,8 @@ import argparse
 import json
 import sys
 
+from aesplat.data.convert import convert_dataset
 from aesplat.data.manifest import verify_shards
-from aesplat.data.shards import convert_dataset
 from aesplat.data.sources import READERS
 from aesplat.errors import UserError
 from aesplat.threads import apply_thread_policy

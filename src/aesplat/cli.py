@@ -256,6 +256,7 @@ def _lightning_cli():
         def instantiate_classes(self) -> None:
             try:
                 super().instantiate_classes()
+                self.model.step_tracker = self.datamodule.step_tracker
             except UserError:
                 raise
             except ValueError as err:  # a config value the model or the data refuse (size, near/far, ...)

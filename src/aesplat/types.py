@@ -150,6 +150,28 @@ class BatchedViews(_TensorContainer):
         return tuple(self.images.shape[-2:])
 
 
+@dataclass
+class Example:
+    """One decoded example (context views first, then targets).
+
+    images uint8 [V, 3, H, W]; extrinsics [V, 4, 4] camera-to-world; intrinsics [V, 3, 3] normalised;
+    index int64 [V] source frame ids; gap: context gap in stored frames (what the curriculum judges);
+    overlap: NaN where unknown; highlight bool [Vt, 1, H, W] target highlight masks, or None; target_large
+    uint8 [Vt, 3, sH, sW] the targets at ``data.eval_transfer_scale`` times the size, or None."""
+
+    images: Tensor
+    extrinsics: Tensor
+    intrinsics: Tensor
+    index: Tensor
+    num_context: int
+    scene: str
+    dataset: str
+    gap: int
+    overlap: float = float("nan")
+    highlight: Tensor | None = None
+    target_large: Tensor | None = None
+
+
 @dataclass(frozen=True)
 class BatchedExample:
     """One training / evaluation batch: context views, target views and per-scene metadata.
@@ -224,3 +246,18 @@ class BatchedExample:
         return replace(self, context=self.context.to(device, dtype), target=self.target.to(device, dtype),
                        overlap=move(self.overlap), gap=move(self.gap),
                        highlight=move(self.highlight), target_large=move(self.target_large))  # fmt: skip
+
+
+class StepTracker:
+    """The global step, written by the training module after every optimizer step and read by the data side
+    (the view-gap curriculum, where an epoch's stream starts) in every process: it lives in shared memory, so
+    DataLoader workers started before a write see it."""
+
+    def __init__(self, step: int = 0) -> None:
+        self._step = torch.full((1,), int(step), dtype=torch.int64).share_memory_()
+
+    def set(self, step: int) -> None:
+        self._step[0] = int(step)
+
+    def get(self) -> int:
+        return int(self._step[0])

@@ -22,8 +22,8 @@ from aesplat.data import convert_dataset
 from aesplat.data.lens import Camera, distorted_pixels, undistort, undistortion_zoom
 from aesplat.data.sampler import evaluation_sample
 from aesplat.data.sources.colmap import colmap_camera, read_colmap, read_colmap_cameras
-from aesplat.data.stream import read_tar
 from aesplat.data.synthetic_scenes import render_scene, sample_scene, scene_to_chunk_entry
+from aesplat.data.tar_files import read_tar
 from tests.helpers import REPO
 
 from ..script_loader import DATA_PREP, load_script

@@ -16,8 +16,9 @@ import torch
 from PIL import Image
 
 from aesplat.data import DataModule, convert_dataset, verify_shards
-from aesplat.data.stream import read_tar, sample_keys
+from aesplat.data.decode import sample_keys
 from aesplat.data.synthetic_scenes import render_scene, sample_scene
+from aesplat.data.tar_files import read_tar
 from aesplat.errors import UserError
 from aesplat.geometry import project_points, unproject_depth
 from tests.helpers import ODD_KEYS

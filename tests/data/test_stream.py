@@ -16,9 +16,9 @@ import pytest
 import torch
 
 from aesplat.data import DataModule, GapCurriculum, flip_views
-from aesplat.data.shards import write_tar
-from aesplat.data.stream import StreamConfig, collate, decode_evaluation_sample, read_tar, sample_keys
+from aesplat.data.decode import StreamConfig, collate, decode_evaluation_sample, sample_keys
 from aesplat.data.synthetic_scenes import render_scene, sample_scene
+from aesplat.data.tar_files import read_tar, write_tar
 from aesplat.errors import UserError
 from aesplat.geometry import project_points, unproject_depth
 
@@ -182,7 +182,7 @@ def test_sampled_gaps_follow_the_curriculum_at_several_steps(synthetic_shards):
                 train_batches_per_epoch=12, num_workers=2)  # fmt: skip
     loader = dm.train_dataloader()
     for start, (lo, hi) in ((0, (2, 3)), (504, (4, 9)), (1008, (6, 14)), (12 * 10**5, (6, 14))):
-        dm.set_global_step(start)  # the persistent workers read the step from shared memory
+        dm.step_tracker.set(start)  # the persistent workers read the step from shared memory
         assert dm.allowed_gap() == (lo, hi)
         gaps = []
         for step, b in enumerate(loader, start):
@@ -277,7 +277,7 @@ def test_resume_mid_epoch_draws_the_same_views_as_an_uninterrupted_run(synthetic
     def run(step: int, workers: int) -> list[tuple]:
         dm = module(synthetic_shards, num_workers=workers, train_batches_per_epoch=8, num_context_views=(2, 3),
                     gap_initial=(2, 4), gap_final=(4, 11), gap_warmup_steps=10, flip_augment=True)  # fmt: skip
-        dm.set_global_step(step)
+        dm.step_tracker.set(step)
         return [(sample_keys(b), b.context.images.clone(), b.context.extrinsics.clone()) for b in
                 dm.train_dataloader()]  # fmt: skip
 
@@ -335,18 +335,18 @@ def test_a_fixed_pool_reuses_few_examples_per_scene(synthetic_shards):
 
 def test_state_dict_restores_the_curriculum(synthetic_shards):
     dm = module(synthetic_shards, gap_initial=(2, 3), gap_final=(6, 8), gap_warmup_steps=100)
-    dm.set_global_step(77)
+    dm.step_tracker.set(77)
     state = dm.state_dict()
     restored = module(synthetic_shards, gap_initial=(2, 3), gap_final=(6, 8), gap_warmup_steps=100)
     restored.load_state_dict(state)
-    assert restored.global_step == 77 and restored.allowed_gap() == dm.allowed_gap()
+    assert restored.step_tracker.get() == 77 and restored.allowed_gap() == dm.allowed_gap()
 
 
 def test_rank_and_step_come_from_the_trainer(synthetic_shards):
     dm = module(synthetic_shards)
     dm.trainer = SimpleNamespace(global_rank=1, world_size=3, global_step=12)
     dm.setup("fit")
-    assert (dm.rank, dm.world_size, dm.global_step) == (1, 3, 12)
+    assert (dm.rank, dm.world_size, dm.step_tracker.get()) == (1, 3, 12)
     assert dm.train_dataset().rank == 1
 
 

@@ -6,10 +6,10 @@ view sampler, shard streaming and the DataModule (docs/data.md).
 
 from typing import TYPE_CHECKING
 
+from .convert import convert_dataset
 from .curriculum import GapCurriculum
+from .decode import flip_views
 from .manifest import read_manifest, verify_shards
-from .shards import convert_dataset
-from .stream import flip_views
 from .synthetic_scenes import generate_dataset, render_scene, sample_scene
 
 if TYPE_CHECKING:

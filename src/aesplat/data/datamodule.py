@@ -2,9 +2,9 @@
 
 Plain constructor arguments, so LightningCLI builds it from YAML. Rank and world size come from the trainer in
 ``setup`` (or ``set_distributed`` in tests), never from environment variables. The training DataLoader writes
-the trainer's global step to shared memory each time an epoch starts, where every worker's stream reads it
-(``stream.TrainStream``: a step inside an epoch resumes that epoch exactly); ``set_global_step`` does the
-same by hand. ``state_dict`` / ``load_state_dict`` carry the step (and seed) through checkpoints.
+the trainer's global step into ``step_tracker`` each time an epoch starts, where every worker's stream reads
+it (``stream.TrainStream``: a step inside an epoch resumes that epoch exactly); the training module writes it
+after every step. ``state_dict`` / ``load_state_dict`` carry the step (and seed) through checkpoints.
 """
 
 from __future__ import annotations
@@ -22,19 +22,12 @@ from lightning.fabric.utilities.seed import pl_worker_init_function
 from torch.utils.data import DataLoader
 
 from ..errors import UserError, ignore_stop_signals_in_worker, stop_signals_blocked
+from ..types import StepTracker
 from .curriculum import GapCurriculum
+from .decode import StreamConfig
 from .manifest import SceneRef, SplitRecord, find_shards, has_split, read_manifest, training_scenes
-from .sampler import ContextCount, fixed_pool, scene_seed
-from .stream import (
-    POOL_TARGETS,
-    EvalStream,
-    StreamConfig,
-    TrainStream,
-    counter_totals,
-    new_counters,
-    partition,
-    usable_at,  # fmt: skip
-)
+from .sampler import ContextCount, ViewSampler
+from .stream import EvalStream, TrainStream, counter_totals, new_counters, partition
 
 __all__ = ["DataModule", "find_shards", "has_split", "validation_split"]
 
@@ -135,8 +128,8 @@ class DataModule(L.LightningDataModule):
         if eval_transfer_scale < 1:
             raise UserError(f"data.eval_transfer_scale must be >= 1 (1: off), got {eval_transfer_scale}")
         self.test_split = test_split
-        self.eval_transfer_scale = eval_transfer_scale
         self.num_context_views = num_context_views  # as given: what the model checks its head against
+        self.eval_transfer_scale = eval_transfer_scale
         self.root = Path(root)
         self.image_size = image_size
         self.batch_size = batch_size
@@ -152,7 +145,7 @@ class DataModule(L.LightningDataModule):
         self.validate_on_test = validate_on_test
         self.shuffle_buffer = shuffle_buffer
         self.seed = seed
-        self._step = torch.zeros(1, dtype=torch.int64).share_memory_()
+        self.step_tracker = StepTracker()
         self._counters = {split: new_counters(num_workers) for split in ("train", "val", "test")}
         self._rank: int | None = None
         self._world_size: int | None = None
@@ -168,7 +161,7 @@ class DataModule(L.LightningDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.trainer is not None and self._rank is None:
             self._rank, self._world_size = self.trainer.global_rank, self.trainer.world_size
-            self.set_global_step(max(self.global_step, self.trainer.global_step))
+            self.step_tracker.set(max(self.step_tracker.get(), self.trainer.global_step))
 
     @property
     def rank(self) -> int:
@@ -180,23 +173,15 @@ class DataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------------------------------- curriculum
 
-    def set_global_step(self, step: int) -> None:
-        """Tell every (already running) worker the current global step, read when an epoch's stream starts."""
-        self._step[0] = int(step)
-
-    @property
-    def global_step(self) -> int:
-        return int(self._step[0])
-
     def allowed_gap(self) -> tuple[int, int]:
         """The context-gap range the curriculum allows now."""
-        return self.curriculum.allowed(self.global_step)
+        return self.curriculum.allowed(self.step_tracker.get())
 
     def state_dict(self) -> dict[str, Any]:
-        return {"global_step": self.global_step, "seed": self.seed}
+        return {"global_step": self.step_tracker.get(), "seed": self.seed}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
-        self.set_global_step(int(state_dict["global_step"]))
+        self.step_tracker.set(int(state_dict["global_step"]))
         self.seed = int(state_dict.get("seed", self.seed))
 
     # ------------------------------------------------------------------------------------------- counters
@@ -245,10 +230,13 @@ class DataModule(L.LightningDataModule):
             context_views=self.context_views,
             num_target_views=self.num_target_views,
             flip_augment=self.flip_augment,
-            min_target_distance=self.min_target_distance,
             examples_per_scene=self.examples_per_scene,
-            fixed_pool=self.fixed_pool,
         )
+
+    def view_sampler(self) -> ViewSampler:
+        """The views of the training examples (and which scenes can give them)."""
+        return ViewSampler(self.num_target_views, self.min_target_distance, self.fixed_pool,
+                           self.curriculum.span(), self.seed)  # fmt: skip
 
     def _loader(self, dataset: torch.utils.data.IterableDataset, on_epoch_start=None) -> DataLoader:
         """Workers batch the samples themselves (``batch_size=None``) and outlive a stop signal sent to the
@@ -277,46 +265,29 @@ class DataModule(L.LightningDataModule):
         """The training stream of this rank, after checking (one line each) that the shards hold whole scenes,
         that every rank gets scenes of its own and that some of them give examples all along the curriculum."""
         scenes = training_scenes(self.root)
-        cfg = self._config(True)
         mine = partition(sorted(scenes, key=lambda s: (s.shard, s.key)), self.rank, self.world_size)
         if not mine:
             raise UserError(
                 f"{len(scenes)} training scenes in {self.root} cannot give each of {self.world_size} "
                 "ranks a scene of its own: convert more scenes or train on fewer devices"
             )
-        self._check_usable(mine, cfg)
-        return TrainStream(
-            scenes,
-            cfg,
-            self.rank,
-            self.world_size,
-            self._counters["train"],
-            self._step,
-            self.curriculum,
-            self.epoch_length(),
-            seed=self.seed,
-            shuffle_buffer=self.shuffle_buffer,
-        )
+        sampler = self.view_sampler()
+        self._check_usable(mine, sampler)
+        return TrainStream(mine, self._config(True), sampler, self.rank, self.world_size,
+                           self._counters["train"], self.step_tracker, self.curriculum, self.epoch_length(),
+                           seed=self.seed, shuffle_buffer=self.shuffle_buffer)  # fmt: skip
 
-    def _check_usable(self, scenes: list[SceneRef], cfg: StreamConfig) -> None:
+    def _check_usable(self, scenes: list[SceneRef], sampler: ViewSampler) -> None:
         """Refuse a run in which, at some step of the curriculum (checked at 17 points of the warm-up), none of
         this rank's scenes can give an example: it would stop later, in a worker, far from the cause."""
         steps = sorted({round(self.curriculum.warmup_steps * i / 16) for i in range(17)})
         lengths = sorted({s.frames for s in scenes})
+        # Fresh examples depend on a scene's length only; a fixed pool on its key too.
+        candidates = scenes if sampler.fixed_pool else [SceneRef("", "", n) for n in lengths]
         for count in range(self.context_views.lo, self.context_views.hi + 1):
-            gaps: set[int] = set()
-            if cfg.fixed_pool:
-                for s in scenes:
-                    pool = fixed_pool(s.frames, self.curriculum.span(), cfg.fixed_pool, count, POOL_TARGETS,
-                                      cfg.min_target_distance, scene_seed(self.seed, s.key))  # fmt: skip
-                    gaps.update(p.gap for p in pool if len(p.target) >= self.num_target_views)
             for step in steps:
                 allowed = self.curriculum.allowed(step)
-                if cfg.fixed_pool:
-                    ok = any(allowed[0] <= g <= allowed[1] for g in gaps)
-                else:
-                    ok = any(usable_at(n, allowed, cfg, count) for n in lengths)
-                if not ok:
+                if not any(sampler.unusable(s.frames, s.key, allowed, count) is None for s in candidates):
                     raise UserError(
                         f"no training scene in {self.root} gives an example at step {step}: a context gap in "
                         f"{list(allowed)} with {count} context and {self.num_target_views} target views "
@@ -359,7 +330,7 @@ class DataModule(L.LightningDataModule):
         """Hand the trainer's global step to the stream as an epoch's iteration starts: the stream takes the
         epoch's first step (or, on a resume, the step inside it) from there."""
         if self.trainer is not None:
-            self.set_global_step(self.trainer.global_step)
+            self.step_tracker.set(self.trainer.global_step)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader(self.eval_dataset("val"))

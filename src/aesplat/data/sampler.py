@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+POOL_TARGETS = 3  # targets stored per fixed-pool example, as the pre-drawn samples of earlier shards held
+
 
 @dataclass(frozen=True)
 class ViewPick:
@@ -91,6 +93,57 @@ def fixed_pool(num_frames: int, span: tuple[int, int], size: int, num_context: i
         room = gap - 2 * min_distance + 1 - (num_context - 2)  # targets that always fit
         pool.append(views_with_gap(num_frames, gap, num_context, min(num_targets, room), min_distance, rng))
     return pool
+
+
+@dataclass(frozen=True)
+class ViewSampler:
+    """The views of training examples, and the one rule of which scenes can give them: fresh examples
+    (:func:`sample_views`), or with ``fixed_pool`` N > 0 one of N examples per scene drawn once
+    (:func:`fixed_pool` over the curriculum's whole ``span``, seeded by ``seed`` and the scene key).
+
+    num_targets: targets per example; min_distance: frames a target keeps from the outer context frames."""
+
+    num_targets: int
+    min_distance: int
+    fixed_pool: int = 0
+    span: tuple[int, int] = (0, 0)
+    seed: int = 0
+
+    def pool(self, frames: int, key: str, count: int) -> list[ViewPick]:
+        return fixed_pool(frames, self.span, self.fixed_pool, count, POOL_TARGETS, self.min_distance,
+                          scene_seed(self.seed, key))  # fmt: skip
+
+    def unusable(self, frames: int, key: str, allowed: tuple[int, int], count: int) -> str | None:
+        """None when a scene of ``frames`` frames can give an example with a context gap in ``allowed`` and
+        ``count`` context views; else why not, as the stream's counter names it."""
+        if not self.fixed_pool:
+            if gap_range(frames, allowed, smallest_gap(count, self.num_targets, self.min_distance)) is not None:
+                return None
+            return "scene_too_short" if frames - 1 < allowed[0] else "too_few_between"
+        pool = self.pool(frames, key, count)
+        if not pool:
+            return "scene_too_short"
+        options = [p for p in pool if allowed[0] <= p.gap <= allowed[1]]
+        if not options:
+            return "curriculum_skipped"
+        return None if any(len(p.target) >= self.num_targets for p in options) else "too_few_targets"
+
+    def draw(self, frames: int, key: str, allowed: tuple[int, int], count: int,
+             rng: np.random.Generator) -> ViewPick | str:  # fmt: skip
+        """One example of a scene, or why it gives none now (:meth:`unusable`; ``too_few_targets`` when the
+        pool example drawn holds too few targets)."""
+        if self.fixed_pool:
+            options = [p for p in self.pool(frames, key, count) if allowed[0] <= p.gap <= allowed[1]]
+            if options:
+                chosen = options[int(rng.integers(len(options)))]
+                if len(chosen.target) >= self.num_targets:
+                    targets = rng.choice(np.array(chosen.target), size=self.num_targets, replace=False)
+                    return ViewPick(chosen.context, tuple(sorted(int(t) for t in targets)))
+        else:
+            pick = sample_views(frames, allowed, count, self.num_targets, self.min_distance, rng)
+            if pick is not None:
+                return pick
+        return self.unusable(frames, key, allowed, count) or "too_few_targets"
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor
 from torchmetrics import MeanMetric
 
+from aesplat.data.sampler import ContextCount
 from aesplat.errors import UserError
 from aesplat.files import name_digest
 from aesplat.images import save_image
@@ -37,7 +38,7 @@ from aesplat.model import (
     forward_batch,
 )
 from aesplat.render import RasterizerConfig, render
-from aesplat.types import BatchedExample, Gaussians, RenderOutput
+from aesplat.types import BatchedExample, Gaussians, RenderOutput, StepTracker
 
 from .evaluation import EvalConfig, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, camera_loss, maybe_lpips
@@ -88,6 +89,7 @@ class AESplatModule(LightningModule):
         if self.lpips_unavailable and loss.lpips_weight == 0:
             rank_zero_warn(f"LPIPS metric unavailable: {self.lpips_unavailable}")
         self.skip_guard = SkipGuard(optim)
+        self.step_tracker: StepTracker | None = None  # the data module's, handed over by whoever pairs them
         self._host_batch: BatchedExample | None = None
         self.val_means = torch.nn.ModuleDict({k: MeanMetric() for k in _METRIC_KEYS})
         self._test_rows: list[dict] = []
@@ -123,12 +125,6 @@ class AESplatModule(LightningModule):
                       **self.render_cfg.render_kwargs())  # fmt: skip
 
     # ----------------------------------------------------------------------------------------- training
-    def _sync_curriculum(self) -> None:
-        """Tell the data stream the global step (view-gap curriculum, seeds of the next epoch's stream)."""
-        datamodule = getattr(self.trainer, "datamodule", None)
-        if datamodule is not None and hasattr(datamodule, "set_global_step"):
-            datamodule.set_global_step(self.global_step)
-
     def setup(self, stage: str) -> None:
         # Before any step: a count of context views the network cannot take is one line, not a failed step.
         for count in context_view_counts(getattr(self.trainer, "datamodule", None)):
@@ -142,9 +138,6 @@ class AESplatModule(LightningModule):
         warning = NetConfig(**self.hparams["net"]).random_backbone_warning()
         if warning:
             rank_zero_warn(warning)
-
-    def on_train_batch_start(self, batch: BatchedExample, batch_idx: int) -> None:
-        self._sync_curriculum()
 
     def training_step(self, batch: BatchedExample, batch_idx: int) -> Tensor:
         """One optimizer step. Nothing in it waits for the device except on the steps that read values back
@@ -181,7 +174,8 @@ class AESplatModule(LightningModule):
         with skipped_when(optimizer.optimizer, found_inf):
             optimizer.step()
         scheduler.step()
-        self._sync_curriculum()  # so a stream started between steps (new epoch, resume) sees the same step
+        if self.step_tracker is not None:  # the data side's view-gap curriculum and its next epoch's stream
+            self.step_tracker.set(self.global_step)
 
         if self._reads_back(step):
             scalars = {
@@ -413,13 +407,12 @@ def _as(cls, value):
 
 def context_view_counts(datamodule: object) -> list[int]:
     """The numbers of context views a data module's batches bring: its ``num_context_views``, a number or an
-    inclusive range ``[low, high]``; none when it has no such setting."""
-    counts = getattr(datamodule, "num_context_views", None)
-    if isinstance(counts, int):
-        return [counts]
-    if isinstance(counts, (list, tuple)) and len(counts) == 2 and all(isinstance(c, int) for c in counts):
-        return list(range(counts[0], counts[1] + 1))
-    return []
+    inclusive range ``[low, high]`` (:meth:`ContextCount.parse`); none when it has no such setting."""
+    try:
+        views = ContextCount.parse(getattr(datamodule, "num_context_views", None))
+    except ValueError:
+        return []
+    return list(range(views.lo, views.hi + 1))
 
 
 def render_name(scene: str) -> str:

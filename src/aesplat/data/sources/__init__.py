@@ -3,7 +3,7 @@
 A reader lists its source's *units* (a chunk file, a scene folder: each becomes one shard per split), the scene
 keys of a unit without reading its images, and the unit's scenes as :class:`~aesplat.data.scene.Scene` objects
 in this project's convention (or :class:`~aesplat.data.scene.Skipped` records with a reason). The writer
-(:mod:`aesplat.data.shards`) does everything else, the same way for every format. A new source format is one
+(:mod:`aesplat.data.convert`) does everything else, the same way for every format. A new source format is one
 new module here and one entry in :data:`READERS`.
 """
 

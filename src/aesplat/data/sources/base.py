@@ -3,30 +3,15 @@
 from __future__ import annotations
 
 import json
-import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 from ...errors import UserError
-from ...files import name_digest
 from ..scene import Scene, Skipped
 
 SPLITS = ("train", "validation", "test")
-
-
-SAFE_KEY_LENGTH = 81  # a tar member name (ustar: 100 bytes) holds the key, a dot and the longest extension
-
-
-def safe_key(text: str) -> str:
-    """A WebDataset key: letters, digits, ``-`` and ``_`` (no dots: they separate the extension; no path
-    separators), every other character ``_``; a key longer than :data:`SAFE_KEY_LENGTH` keeps its first 72
-    characters and gets ``_`` and 8 hex digits of its hash."""
-    key = re.sub(r"[^A-Za-z0-9_\-]", "_", text)
-    if len(key) <= SAFE_KEY_LENGTH:
-        return key
-    return f"{key[: SAFE_KEY_LENGTH - 9]}_{name_digest(text)}"
 
 
 @dataclass(frozen=True)

@@ -18,9 +18,10 @@ import torch
 from PIL import Image
 
 from ...errors import MissingFileError, UserError
+from ..layout import safe_key
 from ..lens import Camera, normalized_intrinsics, pinhole_camera, undistort, undistortion_map
 from ..scene import Scene, SceneError, Skipped
-from .base import SourceConfig, Unit, safe_key
+from .base import SourceConfig, Unit
 
 
 def image_size(path: Path, what: str) -> tuple[int, int]:

@@ -1,4 +1,4 @@
-"""The one shard writer: any source reader's scenes -> WebDataset shards and ``manifest.json`` (docs/data.md).
+"""The conversion: any source reader's scenes -> WebDataset shards and ``manifest.json`` (docs/data.md).
 
 Every unit of the source (a chunk file, a scene folder) becomes one shard per split, written under a temporary
 name, synced and renamed when complete, with a sidecar ``*.json`` (counts, skips with reasons, SHA-256, the
@@ -6,26 +6,8 @@ options and the source files it was made from). A rerun keeps a shard only when 
 its checksum still matches and none of its source files changed (size and modification time); otherwise it is
 made again, so an interrupted conversion resumes and a changed source is never served stale. ``manifest.json``
 (:mod:`aesplat.data.manifest`) gathers the sidecars. Every scene passes the one validation layer
-(:func:`aesplat.data.validate.check_scene`); what it refuses is counted by reason and named on stderr.
-
-Training shards (layout ``scenes``) hold whole scenes: every frame centre-cropped and resized once; the training
-stream draws its examples from them at run time (:mod:`aesplat.data.sampler`)::
-
-    KEY.meta.json            {"scene", "dataset", "frames": [source frame ids], "layout": "scene"}
-    KEY.extrinsics.npy       float32 [F, 4, 4] camera-to-world in the scene's world frame
-    KEY.intrinsics.npy       float32 [F, 3, 3] normalised, for the cropped image
-    KEY.frames.offsets.npy   int64 [F + 1]: frame i is bytes offsets[i]:offsets[i + 1] of frames.jpgs
-    KEY.frames.jpgs          the frames' JPEGs back to back (last: the loader reads only the frames it picks)
-
-Validation and test shards (layout ``samples``) hold one deterministic sample per scene: the evaluation
-index's frames (or :func:`aesplat.data.sampler.evaluation_sample`), plus the extra context frames of the
-k-view contexts for k = 2 .. ``eval_context_views`` (:func:`aesplat.data.sampler.evaluation_context`)::
-
-    KEY.meta.json        {"scene", "dataset", "context", "target", "gap", "overlap", "extra", "context_views"}
-    KEY.ctx0.jpg … KEY.tgt0.jpg … KEY.xtr0.jpg …   the index's context, its targets, the extra context frames
-    KEY.extrinsics.npy / KEY.intrinsics.npy          [V, 4, 4] / [V, 3, 3] in that order
-    KEY.tgt0.spec.png …  scenes that carry their specular magnitude only: 8-bit highlight mask per target, 255
-                         where the term (cropped like the image, area-resampled) exceeds ``specular_threshold``
+(:func:`aesplat.data.validate.check_scene`); what it refuses is counted by reason and named on stderr. The
+samples' members are those of :mod:`aesplat.data.layout`.
 """
 
 from __future__ import annotations
@@ -33,9 +15,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import os
 import sys
-import tarfile
 from collections import Counter
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -48,11 +28,22 @@ from PIL import Image
 
 from ..errors import UserError
 from ..files import atomic_write, remove_partials
+from .layout import (
+    EXTRINSICS,
+    FRAME_OFFSETS,
+    FRAMES,
+    INTRINSICS,
+    META,
+    evaluation_stems,
+    highlight_member,
+    image_member,
+    safe_key,
+)
 from .manifest import MANIFEST_VERSION, sha256
 from .sampler import evaluation_context, evaluation_sample
 from .scene import Scene, SceneError, Skipped
 from .sources import Reader, SourceConfig, Unit, make_reader
-from .sources.base import safe_key
+from .tar_files import ShardWriter
 from .validate import EvaluationEntry, check_scene, read_evaluation_index
 
 
@@ -169,11 +160,11 @@ def scene_sample(scene: Scene, cfg: ConvertConfig) -> dict[str, bytes]:
     frames = list(range(0, len(scene), cfg.frame_stride))
     images, ks = _frames(scene, frames, cfg)
     meta = {"scene": scene.key, "dataset": scene.dataset, "frames": frames, "layout": "scene"}
-    sample = {"meta.json": json.dumps(meta).encode()}
-    sample["extrinsics.npy"] = _npy(scene.c2w[frames].astype(np.float32))
-    sample["intrinsics.npy"] = _npy(ks.astype(np.float32))
-    sample["frames.offsets.npy"] = _npy(np.cumsum([0, *map(len, images)]).astype(np.int64))
-    sample["frames.jpgs"] = b"".join(images)
+    sample = {META: json.dumps(meta).encode()}
+    sample[EXTRINSICS] = _npy(scene.c2w[frames].astype(np.float32))
+    sample[INTRINSICS] = _npy(ks.astype(np.float32))
+    sample[FRAME_OFFSETS] = _npy(np.cumsum([0, *map(len, images)]).astype(np.int64))
+    sample[FRAMES] = b"".join(images)
     return sample
 
 
@@ -201,72 +192,17 @@ def evaluation_members(scene: Scene, entry: EvaluationEntry, cfg: ConvertConfig)
         "extra": extra,
         "context_views": {str(k): list(c) for k, c in contexts.items()},
     }
-    names = (
-        [f"ctx{i}.jpg" for i in range(len(entry.context))]
-        + [f"tgt{i}.jpg" for i in range(len(entry.target))]
-        + [f"xtr{i}.jpg" for i in range(len(extra))]
-    )
+    stems = evaluation_stems(len(entry.context), len(entry.target), len(extra))
     images, ks = _frames(scene, frames, cfg)
-    sample = {"meta.json": json.dumps(meta).encode()}
-    sample.update(zip(names, images))
+    sample = {META: json.dumps(meta).encode()}
+    sample.update((image_member(stem), image) for stem, image in zip(stems, images))
     if scene.specular is not None:
-        for i, f in enumerate(entry.target):
-            sample[f"tgt{i}.spec.png"] = _png(
-                highlight_mask(scene.specular[f], cfg.size, cfg.specular_threshold)
-            )
-    sample["extrinsics.npy"] = _npy(scene.c2w[frames].astype(np.float32))
-    sample["intrinsics.npy"] = _npy(ks.astype(np.float32))
+        for stem, f in zip(stems[len(entry.context) :], entry.target):
+            mask = highlight_mask(scene.specular[f], cfg.size, cfg.specular_threshold)
+            sample[highlight_member(stem)] = _png(mask)
+    sample[EXTRINSICS] = _npy(scene.c2w[frames].astype(np.float32))
+    sample[INTRINSICS] = _npy(ks.astype(np.float32))
     return sample
-
-
-# ----------------------------------------------------------------------------------------------- tar files
-
-
-class ShardWriter:
-    """A WebDataset tar written sample by sample under ``NAME.tar.tmp`` (fixed mtime: reproducible checksums),
-    flushed to disk and renamed to ``NAME.tar`` by :meth:`commit`: a reader never sees half a shard. Leaving
-    the ``with`` block without a commit (an error, a full disk) removes the temporary file."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = Path(path)
-        self.tmp = self.path.with_suffix(".tar.tmp")
-        self.samples = 0
-        self._file = open(self.tmp, "wb")  # noqa: SIM115 - closed by commit or __exit__
-        self._tar = tarfile.open(fileobj=self._file, mode="w", format=tarfile.USTAR_FORMAT)
-
-    def add(self, key: str, sample: dict[str, bytes]) -> None:
-        for ext, data in sample.items():
-            info = tarfile.TarInfo(f"{key}.{ext}")
-            info.size, info.mtime, info.mode = len(data), 0, 0o644
-            self._tar.addfile(info, io.BytesIO(data))
-        self.samples += 1
-
-    def commit(self) -> None:
-        self._tar.close()
-        self._file.flush()
-        os.fsync(self._file.fileno())
-        self._file.close()
-        os.replace(self.tmp, self.path)
-
-    def __enter__(self) -> ShardWriter:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        if not self._file.closed:
-            try:
-                self._tar.close()
-                self._file.close()
-            except OSError:
-                pass  # the disk that failed the write may fail the close as well; the file goes anyway
-            self.tmp.unlink(missing_ok=True)
-
-
-def write_tar(path: Path, samples: list[tuple[str, dict[str, bytes]]]) -> None:
-    """Write samples [(key, {ext: bytes})] as one shard (see :class:`ShardWriter`)."""
-    with ShardWriter(path) as writer:
-        for key, sample in samples:
-            writer.add(key, sample)
-        writer.commit()
 
 
 # ----------------------------------------------------------------------------------------------- jobs
@@ -411,7 +347,7 @@ def convert_unit(job: _Job) -> dict[str, Any]:
                     if job.evaluation:
                         entry = _evaluation_entry(item, job)
                         sample = evaluation_members(item, entry, cfg)
-                        stated[item.key] = {**entry.to_json(), "context_views": json.loads(sample["meta.json"])
+                        stated[item.key] = {**entry.to_json(), "context_views": json.loads(sample[META])
                                             ["context_views"]}  # fmt: skip
                         if item.names is not None:
                             used = [*entry.context, *entry.target]
@@ -430,7 +366,7 @@ def convert_unit(job: _Job) -> dict[str, Any]:
                     refused[item.key] = ["corrupt_image", f"{item.key}: a frame cannot be decoded ({err})"]
                     continue
                 for name, data in sample.items():
-                    if name.endswith(".spec.png"):
+                    if name.endswith(highlight_member("")):
                         with Image.open(io.BytesIO(data)) as im:
                             mask = np.asarray(im) > 0
                         highlight, masked = highlight + int(mask.sum()), masked + mask.size
