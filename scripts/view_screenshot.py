@@ -36,7 +36,7 @@ from headless_chromium import Chromium  # noqa: E402  (a file beside this one, n
 def demo_views(demo: Path, out: Path, count: int = 2) -> list[Path]:
     """``count`` frames of the evaluation index's first test scene as PNG files under ``out``: its context pair
     (first and last) and ``count - 2`` frames evenly between them."""
-    from aesplat.data.chunks import jpeg_bytes, load_chunk
+    from aesplat.data.pixelsplat_chunks import jpeg_bytes, load_chunk
 
     index = json.loads((demo / "src" / "evaluation_index.json").read_text())
     key, entry = next((k, v) for k, v in index.items() if v)

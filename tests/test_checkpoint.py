@@ -11,7 +11,6 @@ import pytest
 import torch
 
 from aesplat.checkpoint import (
-    DATA_RECORD,
     checked_hparams,
     checkpoint_sections,
     load_checkpoint,
@@ -19,6 +18,7 @@ from aesplat.checkpoint import (
 )
 from aesplat.errors import UserError
 from aesplat.model.weights import read_torch_file
+from aesplat.types import DATA_RECORD
 from tests.helpers import write_tiny_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore")

@@ -34,12 +34,12 @@ from .errors import MissingFileError, UserError
 from .model import CameraSource, NetConfig
 from .model.weights import KIND_NAMES, checkpoint_kind, read_torch_file
 from .render import RasterizerConfig
+from .types import DATA_RECORD
 
 # Keys by which a configuration names a class to instantiate (jsonargparse, Lightning, Hydra).
 CLASS_KEYS = frozenset({"class_path", "init_args", "dict_kwargs", "_class_path", "_target_", "__class__"})
 # What LightningCLI records about how it built the module; any other value is refused.
 LIGHTNING_INSTANTIATOR = "lightning.pytorch.cli.instantiate_module"
-DATA_RECORD = "aesplat_data"  # a checkpoint's record of its run's data settings (image_size)
 
 
 # Where `--ckpt_path last` looks in a run folder, and the names a resumable checkpoint has there.

@@ -11,6 +11,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+DATA_RECORD = "aesplat_data"  # the checkpoint key of its run's data settings (image_size)
+
 
 def _check(name: str, t: Any, ndim: int, tail: tuple[int | None, ...] = (), allow_uint8: bool = False) -> None:
     if not isinstance(t, Tensor):

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from aesplat.data import synthetic_scenes
-from aesplat.data.chunks import cameras_to_row, list_chunks, load_chunk, row_to_cameras
+from aesplat.data.pixelsplat_chunks import cameras_to_row, list_chunks, load_chunk, row_to_cameras
 from aesplat.data.synthetic_scenes import albedo, generate_dataset, render_scene, sample_scene
 from aesplat.geometry import project_points, unproject_depth
 

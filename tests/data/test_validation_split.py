@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from aesplat.data import DataModule, convert_dataset, generate_dataset
-from aesplat.data.chunks import list_chunks, load_chunk
 from aesplat.data.convert import held_out_keys
+from aesplat.data.pixelsplat_chunks import list_chunks, load_chunk
 from aesplat.errors import UserError
 from aesplat.train.curves import CURVE_COLUMNS
 

@@ -25,9 +25,9 @@ from ..errors import UserError, ignore_stop_signals_in_worker, stop_signals_bloc
 from ..types import StepTracker
 from .curriculum import GapCurriculum
 from .decode import StreamConfig
-from .manifest import SceneRef, SplitRecord, find_shards, has_split, read_manifest, training_scenes
+from .manifest import SceneRef, SplitRecord, find_shards, has_split, partition, read_manifest, training_scenes
 from .sampler import ContextCount, ViewSampler
-from .stream import EvalStream, TrainStream, counter_totals, new_counters, partition
+from .stream import EvalStream, TrainStream, counter_totals, new_counters
 
 __all__ = ["DataModule", "find_shards", "has_split", "validation_split"]
 

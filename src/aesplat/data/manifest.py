@@ -196,6 +196,16 @@ class SceneRef:
     frames: int
 
 
+def partition(scenes: list[SceneRef], part: int, parts: int) -> list[SceneRef]:
+    """Part ``part`` of ``parts`` disjoint parts of ``scenes`` (sorted by shard): whole shards dealt out when
+    there are at least as many shards as parts (each shard read by one part only), else scenes dealt out."""
+    shards = sorted({s.shard for s in scenes})
+    if len(shards) >= parts:
+        mine = set(shards[part::parts])
+        return [s for s in scenes if s.shard in mine]
+    return scenes[part::parts]
+
+
 def training_scenes(root: str | Path) -> list[SceneRef]:
     """Every training scene of the shards under ``root``, by shard then key. Shards of pre-drawn samples
     (manifest version 1) are refused with the command that converts their source again."""

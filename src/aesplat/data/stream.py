@@ -44,7 +44,7 @@ from .decode import (
     decode_scene_example,
 )
 from .layout import safe_key
-from .manifest import SceneRef
+from .manifest import SceneRef, partition
 from .sampler import ViewSampler
 from .tar_files import FrameReader, SceneEntry, index_scenes, read_tar
 
@@ -63,16 +63,6 @@ def new_counters(num_workers: int) -> Tensor:
 def _worker() -> tuple[int, int]:
     info = get_worker_info()
     return (0, 1) if info is None else (info.id, info.num_workers)
-
-
-def partition(scenes: list[SceneRef], part: int, parts: int) -> list[SceneRef]:
-    """Part ``part`` of ``parts`` disjoint parts of ``scenes`` (sorted by shard): whole shards dealt out when
-    there are at least as many shards as parts (each shard read by one part only), else scenes dealt out."""
-    shards = sorted({s.shard for s in scenes})
-    if len(shards) >= parts:
-        mine = set(shards[part::parts])
-        return [s for s in scenes if s.shard in mine]
-    return scenes[part::parts]
 
 
 class _ShardStream(IterableDataset):

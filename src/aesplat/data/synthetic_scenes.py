@@ -30,7 +30,7 @@ from torch import Tensor
 
 from aesplat.geometry import project_points, unproject_depth
 
-from .chunks import cameras_to_row, encode_jpeg, write_chunk, write_index
+from .pixelsplat_chunks import cameras_to_row, encode_jpeg, write_chunk, write_index
 
 EFFECTS = ("textures", "specular", "exposure")
 DEFAULT_EFFECT_PROBS = {"textures": 1.0, "specular": 0.5, "exposure": 0.3}
@@ -66,7 +66,7 @@ class Materials:
 
 
 @dataclass(frozen=True)
-class Scene:
+class SyntheticScene:
     """One synthetic scene: geometry, materials, light, declared effects and its camera path.
 
     room_lo, room_hi [3]        the room's interior box (the camera path stays inside)
@@ -140,7 +140,7 @@ def albedo(materials: Materials, points: Tensor, surface: Tensor, textured: bool
     return (base * (1.0 + materials.wave_amp[surface, None] * wave)).clamp(0.0, 1.0)
 
 
-def specular(scene: Scene, points: Tensor, normals: Tensor, surface: Tensor, origin: Tensor) -> Tensor:
+def specular(scene: SyntheticScene, points: Tensor, normals: Tensor, surface: Tensor, origin: Tensor) -> Tensor:
     """Blinn-Phong highlight [N, 3] at world points [N, 3] with normals [N, 3], seen from ``origin`` [3]."""
     to_light = torch.nn.functional.normalize(scene.light - points, dim=-1)
     to_eye = torch.nn.functional.normalize(origin - points, dim=-1)
@@ -169,7 +169,7 @@ def ray_directions(extrinsics: Tensor, intrinsics: Tensor, height: int, width: i
     return cam.reshape(1, -1, 3) @ extrinsics[:, :3, :3].transpose(-1, -2)
 
 
-def cast_rays(scene: Scene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def cast_rays(scene: SyntheticScene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Nearest hit of rays origins [N, 3] + t * dirs [N, 3] -> t [N], surface id [N], normal [N, 3].
 
     The room encloses every ray (origins must lie inside it), so every ray hits something.
@@ -211,7 +211,7 @@ def cast_rays(scene: Scene, origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tens
     return t, surface, normal
 
 
-def _trace(scene: Scene, extrinsics: Tensor, height: int, width: int) -> tuple[Tensor, ...]:
+def _trace(scene: SyntheticScene, extrinsics: Tensor, height: int, width: int) -> tuple[Tensor, ...]:
     """Cast one ray per pixel centre of every frame: t, surface, normal, point, origin (flattened)."""
     dirs = ray_directions(extrinsics, scene.intrinsics, height, width)  # [F, HW, 3]
     origins = extrinsics[:, None, :3, 3].expand_as(dirs).reshape(-1, 3)
@@ -220,7 +220,7 @@ def _trace(scene: Scene, extrinsics: Tensor, height: int, width: int) -> tuple[T
     return t, surface, normal, origins + t[:, None] * dirs, origins
 
 
-def _shade(scene: Scene, surface: Tensor, normal: Tensor, points: Tensor, origins: Tensor) -> Tensor:
+def _shade(scene: SyntheticScene, surface: Tensor, normal: Tensor, points: Tensor, origins: Tensor) -> Tensor:
     """Radiance [N, 4] of hit points: RGB = the albedo, plus a highlight only if the scene declares
     ``specular``; channel 3 = the highlight's largest channel (0 without ``specular``)."""
     color = albedo(scene.materials, points, surface, textured="textures" in scene.effects)
@@ -231,7 +231,7 @@ def _shade(scene: Scene, surface: Tensor, normal: Tensor, points: Tensor, origin
 
 
 def render_scene(
-    scene: Scene, height: int, width: int, frames: list[int] | None = None, supersample: int = 1
+    scene: SyntheticScene, height: int, width: int, frames: list[int] | None = None, supersample: int = 1
 ) -> RenderedFrames:
     """Ray-cast frames of a scene (all by default). Computes only the scene's declared effects.
 
@@ -345,7 +345,7 @@ def sample_scene(
     texture_scale: float = 1.0,
     turn_scale: float = 1.0,
     glossy_fraction: float = DEFAULT_GLOSSY_FRACTION,
-) -> Scene:
+) -> SyntheticScene:
     """A random scene, fully determined by ``seed``. ``effects`` forces the declared effects; otherwise each
     effect is declared with its probability in ``effect_probs``. ``glossy_fraction``: the share of surfaces
     that get a highlight under ``specular`` (it changes no random draw, so the geometry stays the same)."""
@@ -386,7 +386,7 @@ def sample_scene(
     light = np.array([rng.uniform(-0.5, 0.5) * half[0], -half[1] + 0.3, rng.uniform(-0.5, 0.5) * half[2]])
     f32 = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
     pos_t, ang_t = f32(pos), f32(angles)
-    return Scene(
+    return SyntheticScene(
         key=key or f"synthetic_{seed:08d}",
         effects=frozenset(effects),
         room_lo=f32(-half),
@@ -433,7 +433,7 @@ def recommended_gaps(frames: int) -> tuple[int, int]:
     return lo, max(lo, (2 * frames) // 3)
 
 
-def scene_to_chunk_entry(scene: Scene, rendered: RenderedFrames, jpeg_quality: int = 95) -> dict:
+def scene_to_chunk_entry(scene: SyntheticScene, rendered: RenderedFrames, jpeg_quality: int = 95) -> dict:
     """A rendered scene as a chunk dict in the real field layout, plus ``depths`` [F, H, W], ``effects`` and
     ``specular`` float16 [F, H, W], the specular term's magnitude per pixel (all zero without ``specular``)."""
     images = (rendered.images * 255.0).round().to(torch.uint8).numpy()

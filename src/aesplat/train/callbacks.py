@@ -14,6 +14,8 @@ import torch
 from lightning.pytorch import Callback, LightningModule, Trainer
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from aesplat.types import DATA_RECORD
+
 
 class Throughput(Callback):
     """Log ``train/samples_per_sec``, ``train/sec_per_step`` (averaged over the last ``window`` steps) and
@@ -181,12 +183,10 @@ def _file_directly_in(path: str, folder: Path) -> str | None:
 
 
 class DataRecord(Callback):
-    """Store the run's ``data.image_size`` in every checkpoint (key ``aesplat.checkpoint.DATA_RECORD``), so
+    """Store the run's ``data.image_size`` in every checkpoint (key ``aesplat.types.DATA_RECORD``), so
     a checkpoint copied out of its run folder still says what input it expects (``aesplat predict``)."""
 
     def on_save_checkpoint(self, trainer: Trainer, pl_module: LightningModule, checkpoint: dict[str, Any]):
-        from aesplat.checkpoint import DATA_RECORD
-
         image_size = getattr(trainer.datamodule, "image_size", None)
         if isinstance(image_size, int):
             checkpoint[DATA_RECORD] = {"image_size": image_size}

@@ -1,8 +1,8 @@
 """pixelSplat-style chunks (RealEstate10K, ACID, the synthetic set): ``SRC/{train,validation,test}/*.torch``.
 
 Each chunk is a list of scenes ``{key, cameras float32[F, 18], images: list of JPEG byte tensors, ...}``
-(:mod:`aesplat.data.chunks`); a unit is one chunk file. A scene's optional ``specular`` [F, H, W] (the
-synthetic set's specular magnitude) is passed on for the highlight masks of evaluation samples.
+(:mod:`aesplat.data.pixelsplat_chunks`); a unit is one chunk file. A scene's optional ``specular`` [F, H, W]
+(the synthetic set's specular magnitude) is passed on for the highlight masks of evaluation samples.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from PIL import Image
 
 from ...errors import MissingFileError
-from ..chunks import CAMERA_ROW, jpeg_bytes, list_chunks, load_chunk, row_to_cameras
+from ..pixelsplat_chunks import CAMERA_ROW, jpeg_bytes, list_chunks, load_chunk, row_to_cameras
 from ..scene import Scene, Skipped
 from .base import SPLITS, SourceConfig, Unit, read_info
 
