@@ -31,6 +31,24 @@ def make_shards(
     return root / "shards"
 
 
+def write_tar(path: Path, samples: list[tuple[str, dict[str, bytes]]]) -> None:
+    """Write samples [(key, {ext: bytes})] as one shard (see :class:`aesplat.data.tar_files.ShardWriter`)."""
+    from aesplat.data.tar_files import ShardWriter
+
+    with ShardWriter(path) as writer:
+        for key, sample in samples:
+            writer.add(key, sample)
+        writer.commit()
+
+
+def sample_keys(batch) -> list[tuple[str, tuple[int, ...]]]:
+    """(scene, frame ids) per element of a ``BatchedExample``: what identifies a sample."""
+    import torch
+
+    frames = torch.cat([batch.context.index, batch.target.index], dim=1).tolist()
+    return [(s, tuple(f)) for s, f in zip(batch.scene, frames)]
+
+
 def write_tiny_checkpoint(
     run_dir: Path, data_root: str = "unused", image_size: int = IMAGE_SIZE, cameras: str = "predicted", **net
 ) -> Path:

@@ -89,12 +89,6 @@ RULES: tuple[Rule, ...] = (
     Rule("model.render.background", colour, "an RGB colour, three values in [0, 1]"),
     Rule("model.eval.num_sample_renders", at_least_zero, "0 or more scenes"),
     Rule("model.eval.log_images_every_n_steps", at_least_zero, "0 (off) or more steps"),
-    Rule("data.image_size", at_least_one, "a positive number of pixels"),
-    Rule("data.batch_size", at_least_one, "1 or more samples"),
-    Rule("data.eval_batch_size", at_least_one, "1 or more samples"),
-    Rule("data.num_workers", at_least_zero, "0 or more worker processes"),
-    Rule("data.eval_num_target_views", at_least_one, "1 or more (or unset: every target)", optional=True),
-    Rule("data.eval_transfer_scale", at_least_one, "1 (off) or more"),
     Rule("data.train_batches_per_epoch", at_least_one, "1 or more batches", commands=("fit",)),
     Rule("data.seed", lambda v: isinstance(v, int) and v >= 0, "a seed of 0 or more"),
     Rule(
@@ -154,6 +148,7 @@ def _section(cfg: Any, key: str) -> dict:
 def check_config(command: str, cfg: Any) -> None:
     """Check the values of a parsed ``aesplat fit|validate|test`` configuration (the subcommand's Namespace);
     UserError "invalid configuration: KEY = VALUE: it must be ..." for the first one out of range."""
+    from .data.datamodule import RANGES
     from .model import APPEARANCE_MODES, SIZES, NetConfig
     from .render import RasterizerConfig
     from .train.evaluation import EvalConfig
@@ -176,7 +171,11 @@ def check_config(command: str, cfg: Any) -> None:
     if net.appearance not in APPEARANCE_MODES:
         raise UserError(f"invalid configuration: unknown appearance {net.appearance!r}; choose one of "
                         f"{', '.join(APPEARANCE_MODES)}")  # fmt: skip
-    for rule in RULES:
+    # The data module's ranges (checked again when it is built): here before anything is written.
+    data_rules = [Rule(f"data.{name}", at_least_one if lowest == 1 else at_least_zero, must, optional=optional)
+                  for name, (lowest, must, optional) in RANGES.items()]  # fmt: skip
+    first = next(i for i, rule in enumerate(RULES) if rule.key.startswith("data."))
+    for rule in (*RULES[:first], *data_rules, *RULES[first:]):
         if command not in rule.commands:
             continue
         present, value = _value(cfg, rule.key)

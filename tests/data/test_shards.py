@@ -16,12 +16,11 @@ import torch
 from PIL import Image
 
 from aesplat.data import DataModule, convert_dataset, verify_shards
-from aesplat.data.decode import sample_keys
 from aesplat.data.synthetic_scenes import render_scene, sample_scene
 from aesplat.data.tar_files import read_tar
 from aesplat.errors import UserError
 from aesplat.geometry import project_points, unproject_depth
-from tests.helpers import ODD_KEYS
+from tests.helpers import ODD_KEYS, sample_keys
 from tests.script_loader import DATA_PREP, load_script
 
 H, W = 48, 64  # landscape source: the centre crop keeps columns 8..56

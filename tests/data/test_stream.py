@@ -16,11 +16,12 @@ import pytest
 import torch
 
 from aesplat.data import DataModule, GapCurriculum, flip_views
-from aesplat.data.decode import StreamConfig, collate, decode_evaluation_sample, sample_keys
+from aesplat.data.decode import StreamConfig, collate, decode_evaluation_sample
 from aesplat.data.synthetic_scenes import render_scene, sample_scene
-from aesplat.data.tar_files import read_tar, write_tar
+from aesplat.data.tar_files import read_tar
 from aesplat.errors import UserError
 from aesplat.geometry import project_points, unproject_depth
+from tests.helpers import sample_keys, write_tar
 
 from .conftest import SIZE
 
@@ -183,7 +184,7 @@ def test_sampled_gaps_follow_the_curriculum_at_several_steps(synthetic_shards):
     loader = dm.train_dataloader()
     for start, (lo, hi) in ((0, (2, 3)), (504, (4, 9)), (1008, (6, 14)), (12 * 10**5, (6, 14))):
         dm.step_tracker.set(start)  # the persistent workers read the step from shared memory
-        assert dm.allowed_gap() == (lo, hi)
+        assert dm.curriculum.allowed(dm.step_tracker.get()) == (lo, hi)
         gaps = []
         for step, b in enumerate(loader, start):
             allowed = dm.curriculum.allowed(step)  # each batch is drawn for the step it is trained at
@@ -339,7 +340,7 @@ def test_state_dict_restores_the_curriculum(synthetic_shards):
     state = dm.state_dict()
     restored = module(synthetic_shards, gap_initial=(2, 3), gap_final=(6, 8), gap_warmup_steps=100)
     restored.load_state_dict(state)
-    assert restored.step_tracker.get() == 77 and restored.allowed_gap() == dm.allowed_gap()
+    assert restored.step_tracker.get() == 77 and restored.curriculum.allowed(77) == dm.curriculum.allowed(77)
 
 
 def test_rank_and_step_come_from_the_trainer(synthetic_shards):

@@ -15,17 +15,8 @@ from .synthetic_scenes import generate_dataset, render_scene, sample_scene
 if TYPE_CHECKING:
     from .datamodule import DataModule
 
-__all__ = [
-    "DataModule",
-    "GapCurriculum",
-    "convert_dataset",
-    "flip_views",
-    "generate_dataset",
-    "read_manifest",
-    "render_scene",
-    "sample_scene",
-    "verify_shards",
-]
+__all__ = ["DataModule", "GapCurriculum", "convert_dataset", "flip_views", "generate_dataset", "read_manifest",
+           "render_scene", "sample_scene", "verify_shards"]  # fmt: skip
 
 
 def __getattr__(name: str):

@@ -291,20 +291,9 @@ def _check(scene: Scene, job: _Job) -> None:
         reason = "shorter_than_min_gap"
     elif job.index is None and cfg.context_gap + 1 > need:  # the deterministic evaluation sample's span
         need, why = cfg.context_gap + 1, f"a context gap of {cfg.context_gap} (--context-gap)"
-    check_scene(
-        scene,
-        max_fov_deg=cfg.max_fov_deg,
-        min_baseline=cfg.min_baseline,
-        expect_shape=cfg.expect_shape,
-        min_frames=need,
-        min_frames_why=why,
-        min_frames_reason=reason,
-    )
-
-
-def _wanted(item: Scene | Skipped, job: _Job) -> bool:
-    """Whether a scene of the unit belongs to the job's split (held-out scenes go to validation)."""
-    return item.key not in job.held_out and (job.only is None or item.key in job.only)
+    check_scene(scene, max_fov_deg=cfg.max_fov_deg, min_baseline=cfg.min_baseline,
+                expect_shape=cfg.expect_shape, min_frames=need, min_frames_why=why,
+                min_frames_reason=reason)  # fmt: skip
 
 
 def convert_unit(job: _Job) -> dict[str, Any]:
@@ -320,8 +309,8 @@ def convert_unit(job: _Job) -> dict[str, Any]:
     try:
         with ShardWriter(shard) as writer:
             for item in job.reader.scenes(job.unit):
-                if not _wanted(item, job):
-                    continue
+                if item.key in job.held_out or (job.only is not None and item.key not in job.only):
+                    continue  # another split's scene (held-out scenes go to validation)
                 if isinstance(item, Skipped):
                     seen += bool(item.key)
                     skips[item.reason] += 1
@@ -429,6 +418,7 @@ def held_out_keys(keys: list[str], count: int, seed: int) -> list[str]:
 
 
 SOURCE_OPTIONS = {f.name for f in fields(SourceConfig)} - {"fmt"}
+SHARD_FIELDS = ("shard", "source", "samples", "scenes", "sha256", "bytes", "scene_frames")  # a manifest's shard
 
 
 def convert_dataset(
@@ -611,18 +601,7 @@ def _manifest(
             "scenes_seen": sum(r["scenes_seen"] for r in recs),
             "skips": dict(sorted(skips.items())),
             "refused": {k: message for r in recs for k, (_, message) in r["refused"].items()},
-            "shards": [
-                {
-                    "shard": r["shard"],
-                    "source": r["source"],
-                    "samples": r["samples"],
-                    "scenes": r["scenes"],
-                    "sha256": r["sha256"],
-                    "bytes": r["bytes"],
-                    "scene_frames": r["scene_frames"],
-                }
-                for r in made
-            ],  # fmt: skip
+            "shards": [{k: r[k] for k in SHARD_FIELDS} for r in made],
         }
         if split == "train":
             entry["frames"] = sum(sum(r["scene_frames"].values()) for r in made)

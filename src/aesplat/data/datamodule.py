@@ -27,13 +27,23 @@ from .curriculum import GapCurriculum
 from .decode import StreamConfig
 from .manifest import SceneRef, SplitRecord, find_shards, has_split, partition, read_manifest, training_scenes
 from .sampler import ContextCount, ViewSampler
-from .stream import EvalStream, TrainStream, counter_totals, new_counters
+from .stream import COUNTERS, EvalStream, TrainStream, new_counters
 
 __all__ = ["DataModule", "find_shards", "has_split", "validation_split"]
 
 TEST_SPLITS = ("test", "validation")
 
 log = logging.getLogger("aesplat.data")
+# The ranges of settings: setting -> (lowest value, what it must be, whether None passes); refused in one line
+# when a DataModule is built, and by ``aesplat.config_checks`` before a command writes anything.
+RANGES: dict[str, tuple[int, str, bool]] = {
+    "image_size": (1, "a positive number of pixels", False),
+    "batch_size": (1, "1 or more samples", False),
+    "eval_batch_size": (1, "1 or more samples", False),
+    "num_workers": (0, "0 or more worker processes", False),
+    "eval_num_target_views": (1, "1 or more (or unset: every target)", True),
+    "eval_transfer_scale": (1, "1 (off) or more", False),
+}
 # Lightning warns that an IterableDataset's __len__ may be wrong with several workers; ours is exact by
 # construction (each worker yields its fixed share of the rank's batches).
 warnings.filterwarnings("ignore", message=r".*Your `IterableDataset` has `__len__` defined.*")
@@ -106,8 +116,13 @@ class DataModule(L.LightningDataModule):
         seed: int = 0,
     ) -> None:
         super().__init__()
-        if image_size < 1 or batch_size < 1 or eval_batch_size < 1 or num_workers < 0:
-            raise UserError("data: image_size, batch_size and eval_batch_size must be >= 1, num_workers >= 0")
+        settings = {"image_size": image_size, "batch_size": batch_size, "eval_batch_size": eval_batch_size,
+                    "num_workers": num_workers, "eval_num_target_views": eval_num_target_views,
+                    "eval_transfer_scale": eval_transfer_scale}  # fmt: skip
+        for name, (lowest, must, optional) in RANGES.items():
+            value = settings[name]
+            if not (value is None and optional) and not (isinstance(value, (int, float)) and value >= lowest):
+                raise UserError(f"invalid configuration: data.{name} = {value!r}: it must be {must}")
         if num_target_views < 1 or min_target_distance < 1 or examples_per_scene < 1 or fixed_pool < 0:
             raise UserError("data: num_target_views, min_target_distance and examples_per_scene must be >= 1, "
                             "fixed_pool >= 0")  # fmt: skip
@@ -122,11 +137,6 @@ class DataModule(L.LightningDataModule):
                             "data.num_context_views a number, not a range")  # fmt: skip
         if test_split not in TEST_SPLITS:
             raise UserError(f"data.test_split must be one of {', '.join(TEST_SPLITS)}, got {test_split!r}")
-        if eval_num_target_views is not None and eval_num_target_views < 1:
-            raise UserError(f"data.eval_num_target_views must be >= 1 (or unset: every target), got "
-                            f"{eval_num_target_views}")  # fmt: skip
-        if eval_transfer_scale < 1:
-            raise UserError(f"data.eval_transfer_scale must be >= 1 (1: off), got {eval_transfer_scale}")
         self.test_split = test_split
         self.num_context_views = num_context_views  # as given: what the model checks its head against
         self.eval_transfer_scale = eval_transfer_scale
@@ -173,10 +183,6 @@ class DataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------------------------------- curriculum
 
-    def allowed_gap(self) -> tuple[int, int]:
-        """The context-gap range the curriculum allows now."""
-        return self.curriculum.allowed(self.step_tracker.get())
-
     def state_dict(self) -> dict[str, Any]:
         return {"global_step": self.step_tracker.get(), "seed": self.seed}
 
@@ -188,10 +194,8 @@ class DataModule(L.LightningDataModule):
 
     def data_errors(self) -> dict[str, int]:
         """Skipped-data counters summed over workers, e.g. ``{"train/corrupt_samples": 0, ...}`` (to log)."""
-        out = {}
-        for split, table in self._counters.items():
-            out.update({f"{split}/{k}": v for k, v in counter_totals(table).items()})
-        return out
+        return {f"{split}/{name}": int(total) for split, table in self._counters.items()
+                for name, total in zip(COUNTERS, table.sum(0).tolist())}  # fmt: skip
 
     # ------------------------------------------------------------------------------------------- loaders
 
@@ -210,14 +214,6 @@ class DataModule(L.LightningDataModule):
             )
         return split
 
-    def shards(self, split: str) -> list[str]:
-        """Sorted shard paths of ``root/<split>`` (see :func:`find_shards`)."""
-        found = find_shards(self.root, split)
-        manifest = read_manifest(self.root)
-        if manifest is not None and manifest.size is not None and manifest.size != self.image_size:
-            log.info("shards are %dpx, resizing to image_size=%d while loading", manifest.size, self.image_size)
-        return found
-
     def _config(self, train: bool) -> StreamConfig:
         if not train:
             return StreamConfig(image_size=self.image_size, batch_size=self.eval_batch_size,
@@ -233,11 +229,6 @@ class DataModule(L.LightningDataModule):
             examples_per_scene=self.examples_per_scene,
         )
 
-    def view_sampler(self) -> ViewSampler:
-        """The views of the training examples (and which scenes can give them)."""
-        return ViewSampler(self.num_target_views, self.min_target_distance, self.fixed_pool,
-                           self.curriculum.span(), self.seed)  # fmt: skip
-
     def _loader(self, dataset: torch.utils.data.IterableDataset, on_epoch_start=None) -> DataLoader:
         """Workers batch the samples themselves (``batch_size=None``) and outlive a stop signal sent to the
         whole process group (:func:`start_worker`); ``on_epoch_start`` runs in the main process each time an
@@ -246,9 +237,7 @@ class DataModule(L.LightningDataModule):
         options = {"batch_size": None, "num_workers": workers, "persistent_workers": workers > 0}
         if workers:
             options["worker_init_fn"] = functools.partial(start_worker, rank=self.rank)
-        if on_epoch_start is None:
-            return _WorkersLoader(dataset, **options)
-        return _EpochStartLoader(on_epoch_start, dataset, **options)
+        return _Loader(dataset, on_epoch_start=on_epoch_start, **options)
 
     def epoch_length(self) -> int:
         """Training batches per rank and epoch: ``train_batches_per_epoch``, or what the trainer's
@@ -271,7 +260,8 @@ class DataModule(L.LightningDataModule):
                 f"{len(scenes)} training scenes in {self.root} cannot give each of {self.world_size} "
                 "ranks a scene of its own: convert more scenes or train on fewer devices"
             )
-        sampler = self.view_sampler()
+        sampler = ViewSampler(self.num_target_views, self.min_target_distance, self.fixed_pool,
+                              self.curriculum.span(), self.seed)  # fmt: skip
         self._check_usable(mine, sampler)
         return TrainStream(mine, self._config(True), sampler, self.rank, self.world_size,
                            self._counters["train"], self.step_tracker, self.curriculum, self.epoch_length(),
@@ -300,8 +290,10 @@ class DataModule(L.LightningDataModule):
         split (``validation_split``)."""
         counters = self._counters["test" if split == "test" else "val"]
         folder = self.test_split if split == "test" else self.validation_split()
-        shards = self.shards(folder)
+        shards = find_shards(self.root, folder)
         manifest = read_manifest(self.root)
+        if manifest is not None and manifest.size is not None and manifest.size != self.image_size:
+            log.info("shards are %dpx, resizing to image_size=%d while loading", manifest.size, self.image_size)
         large = self.image_size * self.eval_transfer_scale
         if self.eval_transfer_scale > 1 and (
             manifest is None or manifest.size is None or manifest.size < large
@@ -350,27 +342,24 @@ def start_worker(worker_id: int, rank: int = 0) -> None:
         pl_worker_init_function(worker_id, rank)
 
 
-class _WorkersLoader(DataLoader):
+class _Loader(DataLoader):
     """A DataLoader that starts its workers with the stop signals blocked (:func:`start_worker` then takes
-    them there): no thread of a worker, not even one started before its ``worker_init_fn``, ever runs torch's
-    SIGTERM handler."""
+    them there: no thread of a worker, not even one started before its ``worker_init_fn``, ever runs torch's
+    SIGTERM handler), and calls ``on_epoch_start`` (if any) in the main process each time an iteration (an
+    epoch) starts, before any worker begins the epoch's stream."""
 
-    def _get_iterator(self):
-        with stop_signals_blocked():  # the workers are started here
-            return super()._get_iterator()
-
-
-class _EpochStartLoader(_WorkersLoader):
-    """A DataLoader that calls ``on_epoch_start`` in the main process each time an iteration (an epoch)
-    starts, before any worker begins the epoch's stream."""
-
-    def __init__(self, on_epoch_start, *args, **kwargs) -> None:
+    def __init__(self, *args, on_epoch_start=None, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.on_epoch_start = on_epoch_start
 
     def __iter__(self):
-        self.on_epoch_start()
+        if self.on_epoch_start is not None:
+            self.on_epoch_start()
         return super().__iter__()
+
+    def _get_iterator(self):
+        with stop_signals_blocked():  # the workers are started here
+            return super()._get_iterator()
 
 
 def check_target_count(root: str | Path, folder: str, want: int | None, record: SplitRecord | None = None):

@@ -87,14 +87,6 @@ def _cameras(raw: dict[str, bytes], rows: int) -> tuple[Tensor, Tensor]:
     return extrinsics, intrinsics
 
 
-def _flip(example: Example, cfg: StreamConfig, rng: np.random.Generator) -> Example:
-    if cfg.flip_augment and rng.uniform() < 0.5:
-        example.images, example.extrinsics, example.intrinsics = flip_views(
-            example.images, example.extrinsics, example.intrinsics
-        )
-    return example
-
-
 def decode_scene_example(entry: SceneEntry, reader: FrameReader, pick: ViewPick, cfg: StreamConfig,
                          rng: np.random.Generator) -> Example:  # fmt: skip
     """A training example from a whole-scene sample: only the picked frames are read and decoded. ``rng`` draws
@@ -105,17 +97,11 @@ def decode_scene_example(entry: SceneEntry, reader: FrameReader, pick: ViewPick,
     extrinsics, intrinsics = _cameras(entry.members, len(frames))
     data = reader.frames(entry, views)
     images = torch.stack([_image(d, f"frame {v}", cfg.image_size) for v, d in zip(views, data)])
-    example = Example(
-        images,
-        extrinsics[views],
-        intrinsics[views],
-        torch.tensor([frames[v] for v in views]),
-        len(pick.context),
-        str(meta["scene"]),
-        str(meta.get("dataset", "")),
-        pick.gap,
-    )
-    return _flip(example, cfg, rng)
+    extrinsics, intrinsics = extrinsics[views], intrinsics[views]
+    if cfg.flip_augment and rng.uniform() < 0.5:
+        images, extrinsics, intrinsics = flip_views(images, extrinsics, intrinsics)
+    return Example(images, extrinsics, intrinsics, torch.tensor([frames[v] for v in views]), len(pick.context),
+                   str(meta["scene"]), str(meta.get("dataset", "")), pick.gap)  # fmt: skip
 
 
 class NoContext(ValueError):
@@ -198,9 +184,3 @@ def collate(examples: list[Example]) -> BatchedExample:
         if examples[0].target_large is None
         else torch.stack([e.target_large for e in examples]),
     )
-
-
-def sample_keys(batch: BatchedExample) -> list[tuple[str, tuple[int, ...]]]:
-    """(scene, frame ids) per batch element: identifies samples in tests and logs."""
-    frames = torch.cat([batch.context.index, batch.target.index], dim=1).tolist()
-    return [(s, tuple(f)) for s, f in zip(batch.scene, frames)]

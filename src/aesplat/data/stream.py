@@ -70,8 +70,6 @@ class _ShardStream(IterableDataset):
 
     def __init__(self, cfg: StreamConfig, rank: int, world_size: int, counters: Tensor) -> None:
         super().__init__()
-        if not 0 <= rank < world_size:
-            raise ValueError(f"rank {rank} is outside world size {world_size}")
         self.cfg = cfg
         self.rank = rank
         self.world_size = world_size
@@ -290,9 +288,3 @@ class EvalStream(_ShardStream):
                     yield collate(pending.pop(kind))
         for batch in pending.values():
             yield collate(batch)
-
-
-def counter_totals(counters: Tensor) -> dict[str, int]:
-    """Sum a counter table over workers -> {name: count}."""
-    totals = counters.sum(0).tolist()
-    return dict(zip(COUNTERS, (int(t) for t in totals)))

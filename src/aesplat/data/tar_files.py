@@ -56,32 +56,26 @@ class ShardWriter:
             self.tmp.unlink(missing_ok=True)
 
 
-def write_tar(path: Path, samples: list[tuple[str, dict[str, bytes]]]) -> None:
-    """Write samples [(key, {ext: bytes})] as one shard (see :class:`ShardWriter`)."""
-    with ShardWriter(path) as writer:
-        for key, sample in samples:
-            writer.add(key, sample)
-        writer.commit()
-
-
-def read_tar(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
-    """Stream the samples of a WebDataset tar: (key, {extension: bytes}), members grouped by key.
-
-    Raises ``tarfile.ReadError`` / ``EOFError`` / ``OSError`` on a truncated or corrupt tar (the incomplete
-    sample at the point of failure is never yielded, wherever the file was cut).
-    """
+def _samples(path: str | Path, stream: bool) -> Iterator[tuple[str, dict[str, Any]]]:
+    """(key, {extension: bytes}) of each sample of a tar, members grouped by key. ``stream``: read in order
+    (``r|``); else random access, where ``frames.jpgs`` stays on disk as (byte offset, length). Raises
+    ``tarfile.ReadError`` / ``EOFError`` / ``OSError`` on a truncated or corrupt tar (the incomplete sample at
+    the point of failure is never yielded, wherever the file was cut)."""
     key, sample = None, {}
     size = os.path.getsize(path)
-    with tarfile.open(path, "r|") as tar:
+    with tarfile.open(path, "r|" if stream else "r:") as tar:
         for member in tar:
             if not member.isfile():
                 continue
-            name = member.name.rsplit("/", 1)[-1]
-            k, _, ext = name.partition(".")
-            f = tar.extractfile(member)
-            data = f.read() if f is not None else b""
-            if len(data) != member.size:
+            k, _, ext = member.name.rsplit("/", 1)[-1].partition(".")
+            if not stream and member.offset_data + member.size > size:
                 raise tarfile.ReadError(f"member {member.name} truncated")
+            if stream or ext != FRAMES:
+                data = tar.extractfile(member).read()
+                if len(data) != member.size:
+                    raise tarfile.ReadError(f"member {member.name} truncated")
+            else:
+                data = (member.offset_data, member.size)
             if k != key:
                 if key is not None:
                     yield key, sample
@@ -92,6 +86,11 @@ def read_tar(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
             raise tarfile.ReadError(f"archive truncated after {tar.offset} bytes (no end-of-archive marker)")
     if key is not None:
         yield key, sample
+
+
+def read_tar(path: str | Path) -> Iterator[tuple[str, dict[str, bytes]]]:
+    """Stream the samples of a WebDataset tar: (key, {extension: bytes}) (see :func:`_samples`)."""
+    yield from _samples(path, stream=True)
 
 
 @dataclass(frozen=True)
@@ -112,29 +111,11 @@ class SceneEntry:
 
 def index_scenes(path: str | Path) -> Iterator[SceneEntry]:
     """The whole-scene samples of a training shard, reading only the headers and the small members: the frames
-    stay on disk until an example picks some (:class:`FrameReader`). Raises ``tarfile.ReadError`` / ``OSError``
-    on a truncated or corrupt shard (the incomplete scene at the point of failure is never yielded)."""
-    size = os.path.getsize(path)
-    key, members, span = None, {}, None
-    with tarfile.open(path, "r:") as tar:  # random access: headers are read, frame bytes are skipped
-        for member in tar:
-            if not member.isfile():
-                continue
-            k, _, ext = member.name.rsplit("/", 1)[-1].partition(".")
-            if member.offset_data + member.size > size:
-                raise tarfile.ReadError(f"member {member.name} truncated")
-            if k != key:
-                if key is not None and span is not None:
-                    yield SceneEntry(str(path), key, members, *span)
-                key, members, span = k, {}, None
-            if ext == FRAMES:
-                span = (member.offset_data, member.size)
-            else:
-                members[ext] = tar.extractfile(member).read()
-        if size - tar.offset < 2 * tarfile.BLOCKSIZE:  # see read_tar: a whole archive ends with two zero blocks
-            raise tarfile.ReadError(f"archive truncated after {tar.offset} bytes (no end-of-archive marker)")
-    if key is not None and span is not None:
-        yield SceneEntry(str(path), key, members, *span)
+    stay on disk until an example picks some (:class:`FrameReader`). Errors as :func:`_samples`."""
+    for key, members in _samples(path, stream=False):
+        span = members.pop(FRAMES, None)
+        if span is not None:
+            yield SceneEntry(str(path), key, members, *span)
 
 
 class FrameReader:
