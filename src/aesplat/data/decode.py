@@ -37,18 +37,15 @@ class StreamConfig:
 
     context_views: the count of context views (training: per batch, see :class:`ContextCount`; evaluation: a
     fixed count); num_target_views: targets per example (None: every target of an evaluation sample);
-    min_target_distance: frames between a target and the outer context frames, at least; examples_per_scene:
-    training examples drawn from each scene read (they enter the shuffle buffer separately); fixed_pool: 0
-    draws every example afresh, N > 0 draws N examples per scene once (seeded) and reuses them."""
+    examples_per_scene: training examples drawn from each scene read (they enter the shuffle buffer
+    separately). Which views a training example has: :class:`aesplat.data.sampler.ViewSampler`."""
 
     image_size: int
     batch_size: int
     context_views: ContextCount = ContextCount(2, 2)
     num_target_views: int | None = 1
     flip_augment: bool = False
-    min_target_distance: int = 1
     examples_per_scene: int = 1
-    fixed_pool: int = 0
     large_scale: int = 1  # evaluation: also decode each target at image_size x this (1: no)
 
 
