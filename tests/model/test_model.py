@@ -122,12 +122,29 @@ def test_dc_is_i2dc_of_the_context_pixels(model):
     assert torch.equal(out.gaussians.sh[:, :, :1], i2dc(ctx))
 
 
-@pytest.mark.parametrize("mode", APPEARANCE_MODES)
-def test_every_ablation_runs_forward_and_backward(mode):
+# The tiny model at SH degree 3 (16 coefficients), two context views: mode -> (SH coefficients per Gaussian,
+# SH coefficients the Gaussian head predicts, the view-dependent head's input width (features 32 + GVSRE 16 +
+# colour and mask of the other view 4) or None, whether the DC coefficient is I2DC's).
+ABLATIONS = {
+    "full": (16, 0, 52, True),
+    "no_gvsre": (16, 0, 36, True),
+    "no_wcm": (16, 0, 48, True),
+    "i2dc_only": (1, 0, None, True),
+    "baseline": (16, 16, None, False),
+    "baseline_i2dc": (16, 15, None, True),
+}
+
+
+def test_every_appearance_mode_is_tested():
+    assert list(APPEARANCE_MODES) == list(ABLATIONS)
+
+
+@pytest.mark.parametrize(("mode", "expected"), ABLATIONS.items())
+def test_every_ablation_runs_forward_and_backward(mode, expected):
+    k, head_sh, width, uses_i2dc = expected
     model = build_model("tiny", appearance=mode, sh_degree=3)
     ctx, tgt = _images(1, 2, 0), _images(1, 1, 1)
     out = model(ctx, tgt)
-    k = 1 if mode == "i2dc_only" else num_sh_coeffs(3)
     assert out.gaussians.sh.shape == (1, 2 * H * W, k, 3) and model.sh_degree == (0 if k == 1 else 3)
     g = out.gaussians
     loss = g.sh.square().mean() + g.means.square().mean() + g.scales.sum() + g.opacities.mean()
@@ -135,18 +152,13 @@ def test_every_ablation_runs_forward_and_backward(mode):
     groups = model.named_parameter_groups()
     for name, p in model.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
-    app = model.appearance
-    has_head = mode in ("full", "no_gvsre", "no_wcm")
-    assert (len(groups["appearance"]) > 0) == has_head
-    if has_head:
+    head = model.appearance.view_dependent_head
+    assert (len(groups["appearance"]) > 0) == (width is not None) == (head is not None)
+    if head is not None:
         assert all(p.grad.abs().sum() > 0 for _, p in groups["appearance"])
-        width = model.cfg.gaussian_feature_dim + (model.cfg.gvsre_dim if mode != "no_gvsre" else 0)
-        width += 4 if mode != "no_wcm" else 0  # one other context view: 3 colours + 1 mask
-        assert app.view_dependent_head.net[0].normalized_shape == (width,)
-    head_sh = {"baseline": k, "baseline_i2dc": k - 1}.get(mode, 0)
+        assert head.net[0].normalized_shape == (width,)
     assert model.gaussian_head.out.out_channels == 8 + 3 * head_sh
-    if mode != "baseline":
-        assert torch.equal(g.sh[:, :, :1], i2dc(ctx))
+    assert torch.equal(g.sh[:, :, :1], i2dc(ctx)) == uses_i2dc
 
 
 def test_i2dc_only_ignores_a_requested_degree():

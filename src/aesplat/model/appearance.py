@@ -16,6 +16,8 @@ pool    beyond the paper: each camera's GVSRE relation and each other view's war
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -24,7 +26,37 @@ from torch import Tensor, nn
 from aesplat.errors import UserError
 from aesplat.geometry import num_sh_coeffs, project_points, rgb_to_sh_dc, safe_norm, sh_rotation_matrix
 
-APPEARANCE_MODES = ("full", "no_gvsre", "no_wcm", "i2dc_only", "baseline", "baseline_i2dc")
+
+@dataclass(frozen=True)
+class AppearanceMode:
+    """Where an appearance mode (a row of the paper's ablation) takes each Gaussian's SH coefficients from."""
+
+    dc: Literal["i2dc", "gaussian_head"]  # the zeroth order (l = 0)
+    higher: Literal["view_dependent_head", "gaussian_head", "none"]  # l >= 1; none: SH degree 0
+    gvsre: bool = False  # the view-dependent head sees GVSRE
+    wcm: bool = False  # the view-dependent head sees the WCM
+
+    def gaussian_head_sh(self, num_coeffs: int) -> int:
+        """SH coefficients the Gaussian head predicts, of ``num_coeffs`` in all."""
+        return int(self.dc == "gaussian_head") + (num_coeffs - 1 if self.higher == "gaussian_head" else 0)
+
+
+# The view-dependent head always sees the Gaussian head's features, besides GVSRE / WCM as a mode says.
+APPEARANCE_MODES: dict[str, AppearanceMode] = {
+    "full": AppearanceMode("i2dc", "view_dependent_head", gvsre=True, wcm=True),
+    "no_gvsre": AppearanceMode("i2dc", "view_dependent_head", wcm=True),
+    "no_wcm": AppearanceMode("i2dc", "view_dependent_head", gvsre=True),
+    "i2dc_only": AppearanceMode("i2dc", "none"),
+    "baseline": AppearanceMode("gaussian_head", "gaussian_head"),
+    "baseline_i2dc": AppearanceMode("i2dc", "gaussian_head"),
+}
+
+
+def appearance_mode(name: str) -> AppearanceMode:
+    """The entry of ``APPEARANCE_MODES`` called ``name``; ValueError naming the choices if there is none."""
+    if name not in APPEARANCE_MODES:
+        raise ValueError(f"unknown appearance {name!r}; choose one of {', '.join(APPEARANCE_MODES)}")
+    return APPEARANCE_MODES[name]
 
 
 def i2dc(images: Tensor) -> Tensor:
@@ -132,18 +164,7 @@ class ViewDependentHead(nn.Module):
 
 
 class DecoupledAppearance(nn.Module, ABC):
-    """Assembles every Gaussian's SH coefficients according to the ablation ``mode``:
-
-    ============== ============= =================================================
-    mode           DC (l = 0)    higher orders (l >= 1)
-    ============== ============= =================================================
-    full           I2DC          view-dependent head on [features, GVSRE, WCM]
-    no_gvsre       I2DC          view-dependent head on [features, WCM]
-    no_wcm         I2DC          view-dependent head on [features, GVSRE]
-    i2dc_only      I2DC          none (SH degree 0)
-    baseline       Gaussian head Gaussian head
-    baseline_i2dc  I2DC          Gaussian head
-    ============== ============= =================================================
+    """Assembles every Gaussian's SH coefficients as the appearance ``mode`` (``APPEARANCE_MODES``) says.
 
     The Gaussian head predicts each view's SH from that view's pixels, in that camera's frame; in the
     baseline rows they are turned into view 0's frame by the view's camera-to-view-0 rotation (the paper's
@@ -159,25 +180,21 @@ class DecoupledAppearance(nn.Module, ABC):
                  gvsre_dim: int = 32, hidden: int = 128) -> None:  # fmt: skip
         """num_context_views: the count a ``concat`` head is built for (``pool`` takes any)."""
         super().__init__()
-        if mode not in APPEARANCE_MODES:
-            raise ValueError(f"unknown appearance mode {mode!r}; choose one of {', '.join(APPEARANCE_MODES)}")
         self.mode = mode
-        self.sh_degree = 0 if mode == "i2dc_only" else sh_degree
+        self.parts = parts = appearance_mode(mode)
+        self.sh_degree = 0 if parts.higher == "none" else sh_degree
         self.num_context_views = num_context_views
-        self.use_i2dc = mode != "baseline"
-        self.use_gvsre = mode in ("full", "no_wcm")
-        self.use_wcm = mode in ("full", "no_gvsre")
-        k = num_sh_coeffs(self.sh_degree)
-        self.gaussian_head_sh = {"baseline": k, "baseline_i2dc": k - 1}.get(mode, 0)
-        uses_head = mode in ("full", "no_gvsre", "no_wcm")
+        self.gaussian_head_sh = parts.gaussian_head_sh(num_sh_coeffs(self.sh_degree))
         view_dim = self._build_view_inputs(num_context_views, gvsre_dim)
         self.view_dependent_head = (
-            ViewDependentHead(feature_dim + view_dim, hidden, self.sh_degree) if uses_head else None
+            ViewDependentHead(feature_dim + view_dim, hidden, self.sh_degree)
+            if parts.higher == "view_dependent_head"
+            else None
         )
 
     @abstractmethod
     def _build_view_inputs(self, num_context_views: int, dim: int) -> int:
-        """Create the modules that embed GVSRE / WCM (as ``use_gvsre`` / ``use_wcm`` ask); return the width
+        """Create the modules that embed GVSRE / WCM (as ``parts.gvsre`` / ``parts.wcm`` ask); return the width
         they add to the view-dependent head's input."""
 
     @abstractmethod
@@ -199,16 +216,16 @@ class DecoupledAppearance(nn.Module, ABC):
     ) -> Tensor:
         """-> SH coefficients [B, V·P, K, 3]."""
         b, v, p, _ = means.shape
-        parts: list[Tensor] = [i2dc(images)] if self.use_i2dc else []
+        blocks: list[Tensor] = [i2dc(images)] if self.parts.dc == "i2dc" else []
         if head_sh is not None:
             s = head_sh.shape[3]  # K (baseline) or K - 1 (baseline_i2dc): the rotation is block diagonal
             turn = sh_rotation_matrix(extrinsics[:, :, :3, :3], self.sh_degree)[..., -s:, -s:]  # [B, V, S, S]
-            parts.append(torch.einsum("bvij,bvpjc->bvpic", turn, head_sh).reshape(b, v * p, s, 3))
+            blocks.append(torch.einsum("bvij,bvpjc->bvpic", turn, head_sh).reshape(b, v * p, s, 3))
         if self.view_dependent_head is not None:
             self.check_context_views(v)
             inputs = [features.reshape(b, v * p, -1), self.view_inputs(images, means, intrinsics, extrinsics)]
-            parts.append(self.view_dependent_head(torch.cat(inputs, dim=-1)))
-        return torch.cat(parts, dim=2)
+            blocks.append(self.view_dependent_head(torch.cat(inputs, dim=-1)))
+        return torch.cat(blocks, dim=2)
 
 
 class ConcatAppearance(DecoupledAppearance):
@@ -216,9 +233,9 @@ class ConcatAppearance(DecoupledAppearance):
     the warped colours and validity masks of the C - 1 other views, concatenated in view order."""
 
     def _build_view_inputs(self, num_context_views: int, dim: int) -> int:
-        self.gvsre = ShallowMLP(4 * num_context_views, dim) if self.use_gvsre else None
+        self.gvsre = ShallowMLP(4 * num_context_views, dim) if self.parts.gvsre else None
         wcm_dim = 4 * (num_context_views - 1)  # colour + mask per other context view
-        return (dim if self.use_gvsre else 0) + (wcm_dim if self.use_wcm else 0)
+        return (dim if self.parts.gvsre else 0) + (wcm_dim if self.parts.wcm else 0)
 
     def check_context_views(self, count: int) -> None:
         if self.view_dependent_head is not None and count != self.num_context_views:
@@ -233,7 +250,7 @@ class ConcatAppearance(DecoupledAppearance):
         inputs = []
         if self.gvsre is not None:
             inputs.append(self.gvsre(gvsre_descriptor(means.reshape(b, v * p, 3), extrinsics[:, :, :3, 3])))
-        if self.use_wcm:
+        if self.parts.wcm:
             colors, mask = warped_color_map(means, images, intrinsics, extrinsics)
             inputs += [colors.reshape(b, v * p, -1), mask.reshape(b, v * p, -1)]
         return torch.cat(inputs, dim=-1)
@@ -253,9 +270,9 @@ class PooledAppearance(DecoupledAppearance):
     """
 
     def _build_view_inputs(self, num_context_views: int, dim: int) -> int:
-        self.gvsre = ShallowMLP(5, dim) if self.use_gvsre else None
-        self.wcm = ShallowMLP(6 + (4 if self.use_gvsre else 0), dim) if self.use_wcm else None
-        return (dim if self.use_gvsre else 0) + (dim + 1 if self.use_wcm else 0)
+        self.gvsre = ShallowMLP(5, dim) if self.parts.gvsre else None
+        self.wcm = ShallowMLP(6 + (4 if self.parts.gvsre else 0), dim) if self.parts.wcm else None
+        return (dim if self.parts.gvsre else 0) + (dim + 1 if self.parts.wcm else 0)
 
     def view_inputs(self, images: Tensor, means: Tensor, intrinsics: Tensor, extrinsics: Tensor) -> Tensor:
         b, v, p, _ = means.shape

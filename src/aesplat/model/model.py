@@ -14,7 +14,7 @@ from aesplat.errors import UserError
 from aesplat.geometry import matrix_to_quat, relative_to_first, unproject_depth
 from aesplat.types import BatchedExample, Gaussians
 
-from .appearance import APPEARANCE_MODES, VIEW_AGGREGATIONS, build_appearance
+from .appearance import VIEW_AGGREGATIONS, appearance_mode, build_appearance
 from .camera_head import CameraHead
 from .dpt import DepthHead
 from .encoder import EncoderConfig, PatchEncoder
@@ -191,7 +191,7 @@ class AESplatModel(nn.Module):
 
     @property
     def sh_degree(self) -> int:
-        """SH degree of the predicted Gaussians (0 in ``i2dc_only``)."""
+        """SH degree of the predicted Gaussians (0 where the appearance mode has no higher orders)."""
         return self.appearance.sh_degree
 
     @property
@@ -364,15 +364,14 @@ def dataset_cameras(batch: BatchedExample) -> tuple[Tensor, Tensor]:
 def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4, **kwargs) -> AESplatModel:
     """Build an AESplat model from a size preset (``tiny``, ``base``, ``large``) and overrides.
 
-    appearance: one of full, no_gvsre, no_wcm, i2dc_only, baseline, baseline_i2dc (the paper's ablation rows).
+    appearance: a key of ``APPEARANCE_MODES`` (the paper's ablation rows).
     kwargs: any :class:`ModelConfig` field (``near``, ``far``, ``weights``, ``view_aggregation``,
     ``num_context_views``, ...) and ``rope``, ``num_register_tokens``, ``qk_norm`` (geometry transformer),
     ``encoder_registers``, ``patch_size`` (encoder; 14 is DINOv2's and the only one pretrained weights fit).
     """
     if size not in SIZES:
         raise ValueError(f"unknown model size {size!r}; choose one of {', '.join(SIZES)}")
-    if appearance not in APPEARANCE_MODES:
-        raise ValueError(f"unknown appearance {appearance!r}; choose one of {', '.join(APPEARANCE_MODES)}")
+    higher = appearance_mode(appearance).higher
     cfg = replace(SIZES[size], appearance=appearance, sh_degree=sh_degree)
     top = {f.name for f in fields(ModelConfig)} - {"encoder", "transformer"}
     nested: dict[str, dict] = {"encoder": {}, "transformer": {}}
@@ -395,8 +394,8 @@ def build_model(size: str = "tiny", appearance: str = "full", sh_degree: int = 4
         transformer=replace(cfg.transformer, **nested["transformer"]),
         **direct,
     )
-    if cfg.appearance == "i2dc_only" and cfg.sh_degree != 0:
-        log.info("appearance=i2dc_only uses SH degree 0 (requested %d)", cfg.sh_degree)
+    if higher == "none" and cfg.sh_degree != 0:
+        log.info("appearance=%s uses SH degree 0 (requested %d)", cfg.appearance, cfg.sh_degree)
     return AESplatModel(cfg)
 
 
