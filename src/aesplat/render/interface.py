@@ -10,8 +10,8 @@ is off inside), resolves the background and the SH degree actually in use, and h
 from __future__ import annotations
 
 import importlib.util
-from collections.abc import Callable
 from dataclasses import fields
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -19,25 +19,30 @@ from torch import Tensor
 from aesplat.geometry import sh_degree_from_coeffs
 from aesplat.types import Gaussians, RenderOutput
 
+from .gsplat_backend import render_gsplat
 from .projection import active_sh_degree
 from .settings import RenderSettings, RenderStats
-
-Backend = Callable[..., tuple[RenderOutput, RenderStats]]
-
-
-def _render_gsplat_lazy(*args, **kwargs) -> tuple[RenderOutput, RenderStats]:
-    from .gsplat_backend import render_gsplat  # imports gsplat only when asked for
-
-    return render_gsplat(*args, **kwargs)
+from .torch_backend import render_torch
 
 
-def _render_torch(*args, **kwargs) -> tuple[RenderOutput, RenderStats]:
-    from .torch_backend import render_torch
+class Backend(Protocol):
+    """A rasterizer backend, as ``render`` calls it: the inputs checked and in the working dtype, ``sh_degree``
+    the bands to evaluate; ``RenderSettings`` says which of its fields each backend reads."""
 
-    return render_torch(*args, **kwargs)
+    def __call__(
+        self,
+        gaussians: Gaussians,
+        extrinsics: Tensor,  # [B, V, 4, 4] camera-to-world
+        intrinsics: Tensor,  # [B, V, 3, 3] normalised
+        height: int,
+        width: int,
+        background: Tensor,  # [B, 3]
+        sh_degree: int,
+        settings: RenderSettings,
+    ) -> tuple[RenderOutput, RenderStats]: ...
 
 
-BACKENDS: dict[str, Backend] = {"torch": _render_torch, "gsplat": _render_gsplat_lazy}
+BACKENDS: dict[str, Backend] = {"torch": render_torch, "gsplat": render_gsplat}  # gsplat imported when it runs
 
 
 def gsplat_available() -> bool:
@@ -152,7 +157,7 @@ def render(
     is seen) and alpha [B, V, 1, H, W]. Differentiable with respect to the Gaussians, both camera matrices
     and the background. Computes in float32 (float64 when given float64), whatever the autocast state.
     ``sh_degree`` caps the SH bands used (default: all the Gaussians carry). ``options`` are the fields of
-    ``RenderSettings`` (tile_size, chunk, max_elements, near, far, eps2d, sh_tol, compile). ``backend``
+    ``RenderSettings`` (which names the backends that read each). ``backend``
     "auto" is resolved on every call from the inputs (see ``get_backend``): gsplat only for float32 CUDA
     tensors with gsplat installed.
     """

@@ -1,5 +1,5 @@
-"""Plain types of the rasterizer: the config section that picks it, the settings every backend understands and
-the statistics a render returns.
+"""Plain types of the rasterizer: the config section that picks it, the settings of a render (each marked with
+the backends that read it) and the statistics a render returns.
 
 They live apart from ``interface.py`` so that the interface and the backends both import them (and the
 backends never import the interface that dispatches to them).
@@ -15,21 +15,23 @@ RASTERIZE_MODES = ("classic", "antialiased")
 
 @dataclass(frozen=True)
 class RenderSettings:
-    """Options every backend understands; pass them to ``render`` as keyword arguments.
+    """Options of ``render``, passed as keyword arguments. Each says who reads it: both backends, the torch
+    backend only (the gsplat backend ignores it), or ``render`` itself before a backend runs.
 
-    tile_size     screen tile side in pixels (torch backend: 8 or 16 are good; gsplat: 16)
-    chunk         Gaussians per compositing step of each tile list (torch backend)
-    max_elements  bound on tiles x pixels x chunk per step: the torch backend's memory budget
-                  (about 60 bytes per element in the backward)
-    step_elements torch backend: while fewer tiles are active than fill this many elements per step, the
+    tile_size     both backends: screen tile side in pixels (torch backend: 8 or 16 are good; gsplat: 16)
+    chunk         torch backend only: Gaussians per compositing step of each tile list
+    max_elements  torch backend only: bound on tiles x pixels x chunk per step, its memory budget (about 60
+                  bytes per element in the backward)
+    step_elements  torch backend only: while fewer tiles are active than fill this many elements per step, the
                   step takes more of each list (chunk x 2^k): few long lists cost few steps (0: never)
-    near, far     depth cull planes (camera z)
-    eps2d         low-pass added to the 2D covariance
-    rasterize_mode  "classic" (the low-pass widens a Gaussian, its opacity unchanged) or "antialiased" (its
-                  opacity scaled by sqrt(det Σ / det(Σ + eps2d·I)), the Mip-Splatting 2D filter: a Gaussian
-                  far below a pixel fades instead of passing for a whole pixel); gsplat's names
-    sh_tol        bands whose coefficients are all within this of zero are skipped
-    compile       torch backend: run the per-chunk maths through ``torch.compile`` (slow first call)
+    near, far     both backends: depth cull planes (camera z)
+    eps2d         both backends: low-pass added to the 2D covariance
+    rasterize_mode  both backends: "classic" (the low-pass widens a Gaussian, its opacity unchanged) or
+                  "antialiased" (its opacity scaled by sqrt(det Σ / det(Σ + eps2d·I)), the Mip-Splatting 2D
+                  filter: a Gaussian far below a pixel fades instead of passing for a whole pixel); gsplat's
+                  names
+    sh_tol        render itself: bands whose coefficients are all within this of zero are skipped
+    compile       torch backend only: run the per-chunk maths through ``torch.compile`` (slow first call)
     """
 
     tile_size: int = 8
