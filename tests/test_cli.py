@@ -115,15 +115,32 @@ def test_posed_fit_saves_loads_and_tests_through_plain_test(shards, tmp_path):
     assert summary["metrics"]["rot_err_deg"] is None  # no pose was predicted, so none is scored
 
 
-def test_predict_and_bench_dispatch(monkeypatch):
+def test_each_command_runs_the_main_of_its_module(monkeypatch):
+    """`aesplat NAME ARGS` calls ``main(ARGS)`` of NAME's module (fakes stand in for the modules)."""
+    modules = {"predict": "aesplat.predict", "bench": "aesplat.bench.command",
+               "export": "aesplat.export.command", "view": "aesplat.view.command"}  # fmt: skip
+    assert {name: module for name, (module, _) in cli.COMMANDS.items()} == modules
     calls = []
-    for name, module in (("predict", "predict"), ("bench", "bench.command")):
-        fake = types.ModuleType(f"aesplat.{module}")
+    for name, module in modules.items():
+        fake = types.ModuleType(module)
         fake.main = lambda argv, name=name: calls.append((name, list(argv)))
-        monkeypatch.setitem(sys.modules, f"aesplat.{module}", fake)
-    cli.main(["predict", "--ckpt", "a.ckpt", "--out", "o", "x.png", "y.png"])
-    cli.main(["bench", "--ckpt", "a.ckpt"])
-    assert calls == [
-        ("predict", ["--ckpt", "a.ckpt", "--out", "o", "x.png", "y.png"]),
-        ("bench", ["--ckpt", "a.ckpt"]),
+        monkeypatch.setitem(sys.modules, module, fake)
+    for name in modules:
+        cli.main([name, "--ckpt", "a.ckpt", "x.png"])
+    assert calls == [(name, ["--ckpt", "a.ckpt", "x.png"]) for name in modules]
+
+
+def test_help_lists_the_commands_then_the_lightning_options(capsys):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["--help"])
+    assert info.value.code in (0, None)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[:6] == [
+        "aesplat fit|validate|test -c CONFIG.yaml [--key value ...]  train / evaluate (LightningCLI)",
+        "aesplat predict --help                    images -> Gaussians, cameras, renders",
+        "aesplat bench --help                      accuracy-versus-time report",
+        "aesplat export --help                     a prediction for COLMAP, nerfstudio, web viewers",
+        "aesplat view --help                       a prediction in the browser",
+        "",
     ]
+    assert lines[6].startswith("usage: ") and "{fit,validate,test}" in lines[6]

@@ -15,7 +15,9 @@ from pathlib import Path
 import pytest
 
 from aesplat import cli
+from aesplat.errors import UserError
 from aesplat.model.weights import export_weights
+from aesplat.train.command import check_inputs, clear_run_dir, explicit_keys, parser_error_line
 from tests.helpers import REPO, aesplat, common, make_shards, one_line, write_tiny_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore")
@@ -69,11 +71,11 @@ def test_fit_checks_the_split_validation_runs_on(tmp_path):
     cfg = Namespace(
         trainer=trainer, data=Namespace(root=str(root)), model=model, ckpt_path=None, overwrite=False
     )
-    cli.check_inputs("fit", cfg)
+    check_inputs("fit", cfg)
     for tar in (root / "validation").glob("*.tar"):
         tar.unlink()
-    with pytest.raises(cli.UserError, match=f"no shards in {root / 'validation'}"):
-        cli.check_inputs("fit", cfg)
+    with pytest.raises(UserError, match=f"no shards in {root / 'validation'}"):
+        check_inputs("fit", cfg)
 
 
 @pytest.mark.parametrize(
@@ -134,12 +136,12 @@ def test_overwrite_deletes_the_run_dir_but_never_the_working_folder(tmp_path, mo
     (run_dir / "checkpoints").mkdir(parents=True)
     (run_dir / "checkpoints" / "last.ckpt").write_bytes(b"old")
     (run_dir / ".lock").write_text("held by this fit")
-    cli.clear_run_dir(run_dir)
+    clear_run_dir(run_dir)
     assert [p.name for p in run_dir.iterdir()] == [".lock"]  # the lock stays with the fit that deletes
     monkeypatch.chdir(tmp_path)
     for folder in (tmp_path, tmp_path.parent, Path(".")):
         with pytest.raises(ValueError, match="--overwrite will not delete"):
-            cli.clear_run_dir(folder)
+            clear_run_dir(folder)
     assert tmp_path.is_dir()
 
 
@@ -155,9 +157,9 @@ def test_a_config_typo_is_one_line_not_the_usage(capsys, shards, tmp_path):
 
 def test_parser_error_line_keeps_the_key_and_the_reason():
     message = "Parser key \"model.net\":\n  Does not validate\n  Errors:\n    Option 'x' is not accepted\n"
-    assert cli.parser_error_line(message) == "model.net: Option 'x' is not accepted"
-    assert cli.parser_error_line("unrecognized arguments: --foo 3") == "unrecognized arguments: --foo 3"
-    assert cli.explicit_keys(["--model.net.size", "small", "--model.eval.output_dir=x", "--data.root", "d"],
+    assert parser_error_line(message) == "model.net: Option 'x' is not accepted"
+    assert parser_error_line("unrecognized arguments: --foo 3") == "unrecognized arguments: --foo 3"
+    assert explicit_keys(["--model.net.size", "small", "--model.eval.output_dir=x", "--data.root", "d"],
                              "model.") == ["model.net.size", "model.eval.output_dir"]  # fmt: skip
 
 

@@ -18,6 +18,7 @@ import torch
 
 from aesplat import cli
 from aesplat.train import AESplatModule
+from aesplat.train.command import run_lightning
 from tests.helpers import REPO, aesplat, common, one_line, tree, write_tiny_checkpoint
 from tests.train.helpers import hold_lock
 
@@ -141,7 +142,7 @@ def test_a_fit_that_fails_before_its_first_checkpoint_leaves_nothing(shards, cap
     run = tmp_path / "run"
     argv = ["fit", *common(shards, run), "--seed_everything", "false"]
     with pytest.raises(RuntimeError, match="the first step failed"):
-        cli.run_lightning(argv, module_class=FailsAtTheFirstStep)
+        run_lightning(argv, module_class=FailsAtTheFirstStep)
     assert f"nothing was trained: removed config.yaml from {run}, so the corrected" in capsys.readouterr().err
     assert not run.exists()  # so the corrected command is not refused as "already holds a run"
 

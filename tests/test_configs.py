@@ -14,6 +14,7 @@ import yaml
 from aesplat import cli
 from aesplat.model import ModelConfig, NetConfig
 from aesplat.render import RasterizerConfig
+from aesplat.train.command import removed_key_error
 from tests.helpers import REPO
 
 pytestmark = pytest.mark.filterwarnings("ignore:LightningCLI's args parameter")
@@ -184,7 +185,7 @@ def test_configs_that_set_the_removed_data_depth_range_fail_with_the_fix(tmp_pat
 
 
 def test_configs_without_removed_keys_pass_the_check():
-    assert cli.removed_key_error(["fit", "-c", str(REPO / "conf/re10k.yaml"), "--model.net.near", "2"]) is None
+    assert removed_key_error(["fit", "-c", str(REPO / "conf/re10k.yaml"), "--model.net.near", "2"]) is None
 
 
 def test_unknown_render_option_is_named_with_the_known_ones():

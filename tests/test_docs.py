@@ -172,19 +172,20 @@ class _Stop(Exception):
 @pytest.fixture(scope="module")
 def lightning_parser():
     """The parser `aesplat fit|validate|test` uses, built once (the same class and options as the command)."""
-    from aesplat.cli import _lightning_cli
+    from aesplat.data import DataModule
+    from aesplat.train import AESplatModule
+    from aesplat.train.command import AESplatCLI, LightningParser
 
-    cli_class, module_class, data_class, parser_class, _ = _lightning_cli()
     captured = {}
 
-    class Capture(cli_class):
+    class Capture(AESplatCLI):
         def parse_arguments(self, parser, args):
             captured["parser"] = parser
             raise _Stop
 
     with pytest.raises(_Stop):
-        Capture(module_class, data_class, args=["fit"], parser_kwargs={"parser_mode": "omegaconf"},
-                parser_class=parser_class, auto_configure_optimizers=False)  # fmt: skip
+        Capture(AESplatModule, DataModule, args=["fit"], parser_kwargs={"parser_mode": "omegaconf"},
+                parser_class=LightningParser, auto_configure_optimizers=False)  # fmt: skip
     return captured["parser"]
 
 
@@ -230,7 +231,7 @@ def test_documented_command_parses(page, command, monkeypatch, lightning_parser)
 
 def test_a_command_with_a_wrong_key_does_not_parse(monkeypatch):
     """The check above can fail: a misspelt key stops LightningCLI's parser."""
-    from aesplat.cli import run_lightning
+    from aesplat.train.command import run_lightning
 
     monkeypatch.chdir(REPO)
     monkeypatch.setattr("sys.argv", ["aesplat"])

@@ -1,5 +1,5 @@
-"""What the argparse commands (``aesplat predict``, ``aesplat bench``) share: a parser whose errors are one
-line, help that shows defaults, and the ``--device`` option."""
+"""What the commands share: a parser whose errors are one line, help that shows defaults, and the ``--device``
+option."""
 
 from __future__ import annotations
 
@@ -22,12 +22,23 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
 
 class OneLineParser(argparse.ArgumentParser):
-    """A malformed command line is one line (what is wrong, and where the options are listed), exit 2."""
+    """A malformed command line is one line (what is wrong, and where the options are listed), exit 2: the
+    parser of `aesplat predict` and `aesplat bench`, and mixed into Lightning's for `aesplat fit|validate|test`.
+    ``AESPLAT_DEBUG=1``, or a parser told not to exit on errors: the parser's own error."""
 
-    def error(self, message: str) -> NoReturn:
-        if debug():
-            super().error(message)
-        print(f"{self.prog}: {message} (`{self.prog} --help` lists the options)", file=sys.stderr)
+    def command(self) -> str:
+        """The command the error line names."""
+        return self.prog
+
+    def error_line(self, message: str) -> str:
+        """What is wrong, in one line."""
+        return message
+
+    def error(self, message: str, *args) -> NoReturn:
+        if debug() or not self.exit_on_error:
+            super().error(message, *args)
+        command = self.command()
+        print(f"{command}: {self.error_line(message)} (`{command} --help` lists the options)", file=sys.stderr)
         raise SystemExit(2)
 
 

@@ -135,9 +135,9 @@ def test_fit_with_a_range_then_test_and_bench_at_each_count_on_the_same_targets(
     count follows the seeded draw of every step and varies), then `aesplat test --data.num_context_views k`
     and `aesplat bench --context-views` for k = 2, 3, 4: the shards' k-view contexts, the same target frames."""
     from aesplat.bench.command import main as bench
-    from aesplat.cli import run_lightning
     from aesplat.data import convert_dataset, generate_dataset
     from aesplat.data.sampler import ContextCount
+    from aesplat.train.command import run_lightning
 
     monkeypatch.chdir(REPO)
     monkeypatch.setattr("sys.argv", ["aesplat"])  # the commands' own arguments only
