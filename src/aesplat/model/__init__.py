@@ -3,11 +3,8 @@ decoupled appearance (I2DC, GVSRE, WCM, view-dependent head). Plain ``nn.Module`
 
 from .appearance import (
     APPEARANCE_MODES,
-    VIEW_AGGREGATIONS,
     ConcatAppearance,
-    DecoupledAppearance,
     PooledAppearance,
-    ShallowMLP,
     ViewDependentHead,
     build_appearance,
     gvsre_descriptor,
@@ -15,10 +12,7 @@ from .appearance import (
     masked_mean,
     warped_color_map,
 )
-from .camera_head import CameraHead
-from .dpt import DPT, DepthHead
 from .encoder import EncoderConfig, PatchEncoder
-from .gaussian_head import GaussianHead, GaussianHeadOutput
 from .model import (
     CAMERA_SOURCES,
     SIZES,
@@ -33,42 +27,25 @@ from .model import (
     dataset_cameras,
     forward_batch,
 )
-from .transformer import GeometryTransformer, TransformerConfig
-from .weights import (
-    WeightsReport,
-    convert_encoder_state_dict,
-    load_encoder_weights,
-    load_pretrained_weights,
-    load_vggt_weights,
-    load_weights,
-)
+from .transformer import TransformerConfig
+from .weights import convert_encoder_state_dict, load_encoder_weights
 
 __all__ = [
     "APPEARANCE_MODES",
     "CAMERA_SOURCES",
-    "DPT",
     "SIZES",
-    "VIEW_AGGREGATIONS",
     "AESplatModel",
-    "CameraHead",
     "CameraSource",
     "ConcatAppearance",
-    "DecoupledAppearance",
-    "DepthHead",
     "EncoderConfig",
-    "GaussianHead",
-    "GaussianHeadOutput",
-    "GeometryTransformer",
     "ModelConfig",
     "ModelOutput",
     "NetConfig",
     "NetOptions",
     "PatchEncoder",
     "PooledAppearance",
-    "ShallowMLP",
     "TransformerConfig",
     "ViewDependentHead",
-    "WeightsReport",
     "build_appearance",
     "build_model",
     "checkpoint_cameras",
@@ -78,9 +55,6 @@ __all__ = [
     "gvsre_descriptor",
     "i2dc",
     "load_encoder_weights",
-    "load_pretrained_weights",
-    "load_vggt_weights",
-    "load_weights",
     "masked_mean",
     "warped_color_map",
 ]

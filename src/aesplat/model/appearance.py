@@ -36,10 +36,6 @@ class AppearanceMode:
     gvsre: bool = False  # the view-dependent head sees GVSRE
     wcm: bool = False  # the view-dependent head sees the WCM
 
-    def gaussian_head_sh(self, num_coeffs: int) -> int:
-        """SH coefficients the Gaussian head predicts, of ``num_coeffs`` in all."""
-        return int(self.dc == "gaussian_head") + (num_coeffs - 1 if self.higher == "gaussian_head" else 0)
-
 
 # The view-dependent head always sees the Gaussian head's features, besides GVSRE / WCM as a mode says.
 APPEARANCE_MODES: dict[str, AppearanceMode] = {
@@ -184,7 +180,8 @@ class DecoupledAppearance(nn.Module, ABC):
         self.parts = parts = appearance_mode(mode)
         self.sh_degree = 0 if parts.higher == "none" else sh_degree
         self.num_context_views = num_context_views
-        self.gaussian_head_sh = parts.gaussian_head_sh(num_sh_coeffs(self.sh_degree))
+        higher = num_sh_coeffs(self.sh_degree) - 1 if parts.higher == "gaussian_head" else 0
+        self.gaussian_head_sh = int(parts.dc == "gaussian_head") + higher  # the SH the Gaussian head predicts
         view_dim = self._build_view_inputs(num_context_views, gvsre_dim)
         self.view_dependent_head = (
             ViewDependentHead(feature_dim + view_dim, hidden, self.sh_degree)
