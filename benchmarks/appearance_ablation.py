@@ -168,7 +168,7 @@ def plan(rows: list[str], seeds: int, free_seeds: int, sets: list[str]) -> list[
 
 def train_and_test(run: Run, shards: Path, work: Path, settings: Settings) -> None:
     """``aesplat fit`` (continuing an interrupted fit) then ``aesplat test`` of its last checkpoint."""
-    from aesplat.train.command import run_lightning
+    from aesplat.lightning_cli import run_lightning
 
     folder = run.directory(work)
     folder.mkdir(parents=True, exist_ok=True)

@@ -171,7 +171,7 @@ def fresh_head_weights(work: Path, settings: Settings) -> Path:
 
 def train(run: Run, shards: Path, work: Path, settings: Settings) -> float:
     """``aesplat fit`` of one run (continuing an interrupted one); returns its seconds."""
-    from aesplat.train.command import run_lightning
+    from aesplat.lightning_cli import run_lightning
 
     weights = []
     if run.model == "concat_fresh":
@@ -190,7 +190,7 @@ def test_at(run: Run, count: int, work: Path) -> dict:
     """``aesplat test --data.num_context_views COUNT`` of the run's last checkpoint (kept when it is newer
     than the checkpoint and has every metric of ``TESTED``): its summary and, per scene, the frames it
     rendered."""
-    from aesplat.train.command import run_lightning
+    from aesplat.lightning_cli import run_lightning
 
     folder = run.directory(work)
     ckpt = folder / "checkpoints" / "last.ckpt"

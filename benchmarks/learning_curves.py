@@ -99,7 +99,7 @@ WARM_START_FINE_TUNE = ["--model.net.options", '{"camera_correlation": true}', "
 def warm_start(args: argparse.Namespace) -> Path:
     """The warm-start checkpoint: shards of a disjoint scene set, then `aesplat fit` of ``--warm-start-config``
     to ``--warm-start-steps`` (continuing an interrupted fit). Returns its last.ckpt."""
-    from aesplat.train.command import run_lightning
+    from aesplat.lightning_cli import run_lightning
 
     data = args.out / "warm-start-data"
     shards = ensure_shards(data, args.size, args.warm_start_scene_args)
@@ -372,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unknown run(s) {', '.join(unknown)}; known: {', '.join(runs)} (or --define NAME=ARGS)")
 
-    from aesplat.train.command import run_lightning
+    from aesplat.lightning_cli import run_lightning
 
     shards = ensure_shards(args.data, args.size, args.scene_args)
     if "warm-start" in args.runs:

@@ -121,10 +121,10 @@ def _rows_of_signature(func: Any, doc: str) -> list[tuple[str, str, str, str]]:
 def sections() -> list[tuple[str, str, list[tuple[str, str, str, str]]]]:
     """(dotted section, what it is, rows of (key, type, default, meaning)), in the order a config lists them."""
     from aesplat.data import DataModule
+    from aesplat.lightning_cli import WandbConfig
     from aesplat.model import NetOptions
     from aesplat.render import RenderSettings
     from aesplat.train import AESplatModule
-    from aesplat.train.command import WandbConfig
 
     hints = typing.get_type_hints(AESplatModule.__init__)
 

@@ -16,8 +16,8 @@ import pytest
 
 from aesplat import cli
 from aesplat.errors import UserError
+from aesplat.lightning_cli import check_inputs, clear_run_dir, explicit_keys, parser_error_line
 from aesplat.model.weights import export_weights
-from aesplat.train.command import check_inputs, clear_run_dir, explicit_keys, parser_error_line
 from tests.helpers import REPO, aesplat, common, make_shards, one_line, write_tiny_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore")

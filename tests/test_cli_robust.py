@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from aesplat import cli
+from aesplat.lightning_cli import run_lightning
 from aesplat.train import AESplatModule
-from aesplat.train.command import run_lightning
 from tests.helpers import REPO, aesplat, common, one_line, tree, write_tiny_checkpoint
 from tests.train.helpers import hold_lock
 

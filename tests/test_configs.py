@@ -12,9 +12,9 @@ import pytest
 import yaml
 
 from aesplat import cli
+from aesplat.lightning_cli import removed_key_error
 from aesplat.model import ModelConfig, NetConfig
 from aesplat.render import RasterizerConfig
-from aesplat.train.command import removed_key_error
 from tests.helpers import REPO
 
 pytestmark = pytest.mark.filterwarnings("ignore:LightningCLI's args parameter")

@@ -173,8 +173,8 @@ class _Stop(Exception):
 def lightning_parser():
     """The parser `aesplat fit|validate|test` uses, built once (the same class and options as the command)."""
     from aesplat.data import DataModule
+    from aesplat.lightning_cli import AESplatCLI, LightningParser
     from aesplat.train import AESplatModule
-    from aesplat.train.command import AESplatCLI, LightningParser
 
     captured = {}
 
@@ -231,7 +231,7 @@ def test_documented_command_parses(page, command, monkeypatch, lightning_parser)
 
 def test_a_command_with_a_wrong_key_does_not_parse(monkeypatch):
     """The check above can fail: a misspelt key stops LightningCLI's parser."""
-    from aesplat.train.command import run_lightning
+    from aesplat.lightning_cli import run_lightning
 
     monkeypatch.chdir(REPO)
     monkeypatch.setattr("sys.argv", ["aesplat"])

@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from aesplat import threads
+from aesplat.lightning_cli import _local_processes
 from aesplat.threads import apply_thread_policy, pick_threads, usable_cores
-from aesplat.train.command import _local_processes
 
 
 @pytest.mark.parametrize(

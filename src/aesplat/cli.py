@@ -1,6 +1,6 @@
 """The `aesplat` command: `aesplat NAME …` runs the ``main`` of the module ``COMMANDS`` names for NAME,
 imported only then (a command does not wait for the others' imports); `aesplat fit|validate|test` is the
-LightningCLI of ``aesplat.train.command``. A user's error is one line (``aesplat.errors``).
+LightningCLI of ``aesplat.lightning_cli``. A user's error is one line (``aesplat.errors``).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def _run_command(command: str, argv: list[str]) -> None:
     if command in COMMANDS:
         importlib.import_module(COMMANDS[command][0]).main(argv[1:])
     else:
-        from aesplat.train.command import run_lightning
+        from aesplat.lightning_cli import run_lightning
 
         run_lightning(argv)
 

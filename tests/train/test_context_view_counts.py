@@ -137,7 +137,7 @@ def test_fit_with_a_range_then_test_and_bench_at_each_count_on_the_same_targets(
     from aesplat.bench.command import main as bench
     from aesplat.data import convert_dataset, generate_dataset
     from aesplat.data.sampler import ContextCount
-    from aesplat.train.command import run_lightning
+    from aesplat.lightning_cli import run_lightning
 
     monkeypatch.chdir(REPO)
     monkeypatch.setattr("sys.argv", ["aesplat"])  # the commands' own arguments only
