@@ -41,7 +41,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from aesplat.stats import holm, paired_t_p, t_interval
+from common import holm, paired_t_p, t_interval
 
 REPO = Path(__file__).resolve().parents[1]
 ROWS = ("full", "no_gvsre", "no_wcm", "baseline_i2dc", "baseline", "i2dc_only")  # the paper's table order

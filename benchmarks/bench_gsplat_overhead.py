@@ -15,13 +15,9 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
-from pathlib import Path
 
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_render_scene import reference_workload  # noqa: E402
 
 from aesplat.geometry import invert_pose  # noqa: E402

@@ -27,12 +27,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_render_scene import reference_workload  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-from figures import provenance, write_whole  # noqa: E402
+from common import provenance, write_whole  # noqa: E402
 
 from aesplat.render import render, render_with_stats  # noqa: E402
 from aesplat.types import Gaussians  # noqa: E402

@@ -25,22 +25,17 @@ import tempfile
 import time
 from pathlib import Path
 
+from common import demo_shards
+
 REPO = Path(__file__).resolve().parents[1]
 BUSY = "while True: pass"
 
 
 def make_shards(root: Path, size: int) -> Path:
     """The demo's data: data_prep/synthetic.py defaults, then 42x42 shards (as `make demo`)."""
-    shards = root / "shards"
-    if (shards / "manifest.json").exists():
-        return shards
-    env = _env()
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
-    subprocess.run([sys.executable, "data_prep/synthetic.py", "--out", str(root / "src")], cwd=REPO, env=env,
-                   check=True, **quiet)  # fmt: skip
-    subprocess.run([sys.executable, "data_prep/to_shards.py", "--src", str(root / "src"), "--out", str(shards),
-                    "--size", str(size)], cwd=REPO, env=env, check=True, **quiet)  # fmt: skip
-    return shards
+    demo_shards(root / "src", [(size, root / "shards")], [], cwd=REPO, env=_env(), **quiet)
+    return root / "shards"
 
 
 def _env(**extra: str) -> dict[str, str]:

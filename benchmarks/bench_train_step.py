@@ -60,9 +60,10 @@ from pathlib import Path
 import lightning as L
 import torch
 import yaml
+from common import synthetic_shards
 from lightning.pytorch import Callback
 
-from aesplat.data import DataModule, convert_dataset, generate_dataset
+from aesplat.data import DataModule
 from aesplat.files import atomic_write
 from aesplat.threads import apply_thread_policy
 from aesplat.train import AESplatModule
@@ -236,13 +237,6 @@ def _deep_merge(a: dict, b: dict) -> dict:
             else value
         )
     return out
-
-
-def synthetic_shards(root: Path, size: int, scenes: int) -> tuple[Path, list[int]]:
-    """Synthetic scenes (32 frames) as shards of ``size``; returns the folder and the gap range they hold."""
-    info = generate_dataset(root / "src", scenes=scenes, test_scenes=1, frames=32, seed=0, progress=False)
-    convert_dataset(root / "src", root / "shards", size=size, progress=False)
-    return root / "shards", list(info["gap_range"])
 
 
 def build(cfg: dict, args: argparse.Namespace, shards: Path, gaps: list[int]):

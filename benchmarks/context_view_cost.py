@@ -34,9 +34,9 @@ import tempfile
 from pathlib import Path
 from unittest import mock
 
+from common import provenance, write_whole
+
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-from figures import provenance, write_whole  # noqa: E402
 
 CONFIG = "conf/demo.yaml"
 PAPER_CONFIG = "conf/re10k.yaml"

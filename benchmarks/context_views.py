@@ -47,7 +47,6 @@ import json
 import math
 import os
 import shlex
-import subprocess
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -57,11 +56,9 @@ from pathlib import Path
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-from figures import provenance, write_whole  # noqa: E402
+from common import DEMO_VAL_SCENES, demo_shards, provenance, t_interval, write_whole  # noqa: E402
 
 from aesplat.files import atomic_write  # noqa: E402
-from aesplat.stats import t_interval  # noqa: E402
 
 MODELS = ("pool", "concat", "concat_fresh", "pool_2")
 NAMES = {"pool": "`pool`", "concat": "`concat`", "concat_fresh": "`concat`, fresh head",
@@ -79,7 +76,6 @@ LABELS = {"psnr": "PSNR (dB)", "rot_err_target_deg": "rotation error, targets (Â
           "trans_err_deg": "translation error, all views (Â°)"}  # fmt: skip
 DIGITS = {"psnr": 2, "rot_err_target_deg": 2, "forward_ms": 1, "render_ms": 1, "ssim": 3,
           "trans_err_target_deg": 1, "rot_err_deg": 2, "trans_err_deg": 1}  # fmt: skip
-VAL_SCENES = 12  # as `make demo`
 # Threads of the timed forwards and renders: one, as each fit of `make demo` has, and less disturbed by the
 # other work of a 2-core machine than two.
 THREADS = 1
@@ -128,14 +124,9 @@ class Run:
 def prepare_data(work: Path, settings: Settings) -> Path:
     """The demo's scenes and shards (made once, as `make demo` makes them, with ``scene_args``); a one-line
     exit when their test samples carry fewer context views than --eval-views asks for."""
-    src, shards = work / "src", work / "shards"
-    python = sys.executable
-    if not (src / "dataset.json").exists():
-        subprocess.run([python, str(REPO / "data_prep/synthetic.py"), "--out", str(src), "--val-scenes",
-                        str(VAL_SCENES), *shlex.split(settings.scene_args)], check=True)  # fmt: skip
-    if not (shards / "manifest.json").exists():
-        subprocess.run([python, str(REPO / "data_prep/to_shards.py"), "--src", str(src), "--out", str(shards),
-                        "--size", str(settings.size)], check=True)  # fmt: skip
+    shards = work / "shards"
+    demo_shards(work / "src", [(settings.size, shards)], ["--val-scenes", str(DEMO_VAL_SCENES),
+                                                          *shlex.split(settings.scene_args)])  # fmt: skip
     from aesplat.data.manifest import read_manifest
 
     record = read_manifest(shards).splits["test"]

@@ -29,8 +29,8 @@ import sys
 from pathlib import Path
 
 import yaml
+from common import synthetic_shards
 
-from aesplat.data import convert_dataset, generate_dataset
 from aesplat.train.loss import vgg16_weights_path
 
 
@@ -41,9 +41,7 @@ def shards_for(config: list[str], out: Path) -> tuple[Path, list[int]]:
         size = ((yaml.safe_load(Path(path).read_text()) or {}).get("data") or {}).get("image_size", size)
     shards, gaps_file = out / "shards", out / "shards" / "gaps.txt"
     if not gaps_file.is_file():
-        info = generate_dataset(out / "src", scenes=4, test_scenes=1, frames=32, seed=0, progress=False)
-        convert_dataset(out / "src", shards, size=size, progress=False)
-        gaps_file.write_text(" ".join(str(g) for g in info["gap_range"]))
+        gaps_file.write_text(" ".join(str(g) for g in synthetic_shards(out, size, scenes=4)[1]))
     return shards, [int(g) for g in gaps_file.read_text().split()]
 
 

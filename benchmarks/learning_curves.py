@@ -7,7 +7,7 @@
         [--data-seeds 0 1 2] [--out outputs/curves] [-- extra `aesplat fit` overrides for every run]
 
 Trains each named run with `aesplat fit` (in this process, one after the other, same config and seed) and
-records, with the ``aesplat.train.curves.LearningCurve`` callback, PSNR, SSIM, rotation and
+records, with the ``curves.LearningCurve`` callback, PSNR, SSIM, rotation and
 translation-direction errors and the copy-the-context yardsticks on the validation scenes and on the test
 scenes, side by side, at step 0, every ``--every`` steps and at the end, against steps and training seconds
 (evaluation excluded). Writes OUT/<run>/curve.csv per run, OUT/curves.png (validation PSNR and rotation error
@@ -52,7 +52,6 @@ from __future__ import annotations
 import argparse
 import math
 import shlex
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -61,9 +60,8 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-
-from aesplat.stats import t_interval  # noqa: E402
-from aesplat.train.curves import read_curve  # noqa: E402
+from common import DEMO_VAL_SCENES, demo_shards, t_interval  # noqa: E402
+from curves import read_curve  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -88,7 +86,6 @@ def lever_args(steps: int) -> dict[str, list[str]]:
 
 
 SEED_TAG = "@data-seed-"  # a run trained once per --data-seeds value: pose-free@data-seed-1
-DEMO_VAL_SCENES = "12"  # validation scenes of the demo's shards, as scripts/demo.sh makes them
 WARM_START_SCENES = "--seed 1 --scenes 1536 --test-scenes 8"  # disjoint from the demo's scenes (seed 0)
 # The pose-free stage from the warm start, as conf/demo.yaml sets it: its network (the camera head's correlation
 # branch) and a learning rate a tenth of the from-scratch one (chosen on validation scenes, docs/validation.md)
@@ -129,15 +126,9 @@ def checkpoint_step(checkpoint: Path) -> int:
 
 def ensure_shards(data: Path, size: int, scene_args: str) -> Path:
     """DATA/shards, made like `make demo` makes them when its manifest is missing."""
-    shards = data / "shards"
-    if (shards / "manifest.json").is_file():
-        return shards
-    python = sys.executable
-    subprocess.run([python, str(ROOT / "data_prep/synthetic.py"), "--out", str(data / "src"), "--val-scenes",
-                    DEMO_VAL_SCENES, *shlex.split(scene_args)], check=True)  # fmt: skip
-    subprocess.run([python, str(ROOT / "data_prep/to_shards.py"), "--src", str(data / "src"), "--out",
-                    str(shards), "--size", str(size)], check=True)  # fmt: skip
-    return shards
+    demo_shards(data / "src", [(size, data / "shards")], ["--val-scenes", str(DEMO_VAL_SCENES),
+                                                           *shlex.split(scene_args)])  # fmt: skip
+    return data / "shards"
 
 
 def config_args(configs: list[str]) -> list[str]:
@@ -155,7 +146,7 @@ def fit_args(
         "--trainer.limit_val_batches", "0", "--trainer.logger", "false",
         "--trainer.enable_progress_bar", "false",
         "--checkpoint.save_top_k", "0", "--last_checkpoint.every_n_train_steps", str(every),
-        "--trainer.callbacks+=aesplat.train.curves.LearningCurve",
+        "--trainer.callbacks+=curves.LearningCurve",
         "--trainer.callbacks.csv_path", str(run_dir / "curve.csv"),
         "--trainer.callbacks.every_n_steps", str(every),
         *extra, "--ckpt_path", "last",

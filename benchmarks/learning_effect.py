@@ -32,8 +32,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from aesplat.stats import t_interval
-from aesplat.train.curves import read_curve
+from common import t_interval
+from curves import read_curve
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_PASSES = 400_000 * 10 / (67_000 * 8)  # the paper's steps x batch over RealEstate10K's scenes x 8 samples

@@ -45,13 +45,10 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from common import demo_shards, provenance, t_interval, write_whole
+
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-from figures import provenance, write_whole  # noqa: E402
 
-from aesplat.stats import t_interval  # noqa: E402
-
-VAL_SCENES = 12  # as `make demo`
 SIZE = 42
 TRANSFER_SCALE = 2
 # The demo's pixel at its median predicted depth is 0.094 scene units (focal length 1.03 x 42 px, depth
@@ -124,18 +121,9 @@ def aesplat() -> list[str]:
 
 def prepare_data(work: Path) -> tuple[Path, Path]:
     """The demo's scenes, and their shards at the demo's size and at twice it (each made once)."""
-    src = work / "src"
-    if not (src / "dataset.json").exists():
-        subprocess.run([sys.executable, str(REPO / "data_prep/synthetic.py"), "--out", str(src),
-                        "--val-scenes", str(VAL_SCENES)], check=True)  # fmt: skip
-    out = []
-    for size in (SIZE, SIZE * TRANSFER_SCALE):
-        shards = work / f"shards_{size}"
-        if not (shards / "manifest.json").exists():
-            subprocess.run([sys.executable, str(REPO / "data_prep/to_shards.py"), "--src", str(src), "--out",
-                            str(shards), "--size", str(size)], check=True)  # fmt: skip
-        out.append(shards)
-    return out[0], out[1]
+    sizes = [(size, work / f"shards_{size}") for size in (SIZE, SIZE * TRANSFER_SCALE)]
+    demo_shards(work / "src", sizes)
+    return sizes[0][1], sizes[1][1]
 
 
 def variant_args(variant: str) -> list[str]:
@@ -148,27 +136,11 @@ def variant_args(variant: str) -> list[str]:
 
 def warmstart_data(folder: Path) -> Path:
     """The warm start's shards, made as ``make warmstart`` makes them (once; the scene sources are removed)."""
-    if (folder / "manifest.json").exists():
-        return folder
-    src = folder.parent / "src"
-    subprocess.run([sys.executable, str(REPO / "data_prep/synthetic.py"), "--out", str(src), "--seed", "1",
-                    "--scenes", "1536", "--test-scenes", "8", "--threads", "2"], check=True)  # fmt: skip
-    subprocess.run(
-        [
-            sys.executable,
-            str(REPO / "data_prep/to_shards.py"),
-            "--src",
-            str(src),
-            "--out",
-            str(folder),
-            "--size",
-            str(SIZE),
-            "--workers",
-            "2",
-        ],
-        check=True,
-    )
-    shutil.rmtree(src)
+    if not (folder / "manifest.json").exists():
+        src = folder.parent / "src"
+        scenes = ["--seed", "1", "--scenes", "1536", "--test-scenes", "8", "--threads", "2"]
+        demo_shards(src, [(SIZE, folder)], scenes, ["--workers", "2"])
+        shutil.rmtree(src)
     return folder
 
 

@@ -34,18 +34,19 @@ from pathlib import Path
 
 import matplotlib
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
-from figures import provenance, write_whole  # noqa: E402
+from common import provenance, write_whole  # noqa: E402
+from curves import COPY_BEST, COPY_MEAN, context_copy_psnr  # noqa: E402
 
 from aesplat.bench.command import evaluation_scenes  # noqa: E402
 from aesplat.checkpoint import LoadedCheckpoint, load_checkpoint, run_config  # noqa: E402
 from aesplat.images import colorize_depth  # noqa: E402
 from aesplat.model import forward_batch  # noqa: E402
 from aesplat.render import render  # noqa: E402
-from aesplat.train.metrics import COPY_BEST, COPY_MEAN, context_copy_psnr, psnr  # noqa: E402
+from aesplat.train.metrics import psnr  # noqa: E402
 
 CAMERAS = {"predicted": "*predicted* target cameras", "dataset": "data set's target cameras"}  # model.cameras
 # The demo's two goals: PSNR at least this much over copying the mean of the context views, and a rotation

@@ -24,8 +24,8 @@ specifier of ``torch``. Files are read by their suffix: JSON, YAML, TOML, CSV (a
 to its cells, markup removed): ``[run=eager again].seconds per step``.
 
 A command that measures writes its source with ``provenance()`` (date, commit, machine, load) beside its
-figures, and ``write_whole()`` (whole or not at all), as ``scripts/demo_report.py`` and
-``benchmarks/bench_render.py --json`` do.
+figures, and ``write_whole()`` (whole or not at all), both of ``benchmarks/common.py``, as
+``scripts/demo_report.py`` and ``benchmarks/bench_render.py --json`` do.
 
     python scripts/figures.py                  # check every page; print each disagreement; exit 1 if any
     python scripts/figures.py --write          # rewrite the figures of the pages from their sources
@@ -43,13 +43,11 @@ import argparse
 import csv
 import json
 import math
-import os
 import re
 import sys
-import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import datetime
 from decimal import ROUND_HALF_UP, Decimal
 from functools import cache
 from pathlib import Path
@@ -62,6 +60,8 @@ except ModuleNotFoundError:  # Python 3.10: a page may not quote a TOML file the
     tomllib = None
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+from common import t_interval  # noqa: E402  (benchmarks/common.py, a file beside the packages)
 
 
 def _seeds(pattern: str, step_column: str = "step") -> Callable[[], dict]:
@@ -70,8 +70,6 @@ def _seeds(pattern: str, step_column: str = "step") -> Callable[[], dict]:
     last rows themselves (``runs``), each with its gain over copying the mean of the context views."""
 
     def compute() -> dict:
-        from aesplat.stats import t_interval
-
         files = sorted(REPO.glob(pattern))
         if not files:
             raise FigureError(f"no file matches {pattern}")
@@ -143,68 +141,6 @@ NUMBER = re.compile(r"[-+]?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?")
 
 class FigureError(Exception):
     """A source or key that cannot be read."""
-
-
-# ---------------------------------------------------------------------------------------------------
-# Writing sources: what a command that measures records with its figures
-
-
-def provenance(load_start: list[float] | None = None) -> dict:
-    """When, on what and under what load a figure was measured: the UTC time, the commit (and whether tracked
-    files other than the documentation differed from it), the machine, and the 1-, 5- and 15-minute load
-    averages at the start (``load_start``, when the caller read them) and now."""
-    import platform
-    import subprocess
-
-    def git(*args: str) -> str:
-        return subprocess.run(
-            ["git", *args], cwd=REPO, capture_output=True, text=True, check=True
-        ).stdout.strip()
-
-    try:
-        code = ("--", ".", ":(exclude)docs", ":(exclude)*.md")  # pages do not change a measurement
-        commit = {"commit": git("rev-parse", "--short", "HEAD"),
-                  "modified": bool(git("status", "--porcelain", "--untracked-files=no", *code))}  # fmt: skip
-    except (OSError, subprocess.CalledProcessError):
-        commit = {"commit": None, "modified": None}
-    machine = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "memory_gib": None}
-    for name, prefix in (("/proc/cpuinfo", "model name"), ("/proc/meminfo", "MemTotal:")):
-        try:
-            line = next(x for x in Path(name).read_text().splitlines() if x.startswith(prefix))
-        except (OSError, StopIteration):
-            continue
-        if prefix == "model name":
-            machine["cpu"] = line.split(":", 1)[1].strip()
-        else:
-            machine["memory_gib"] = round(int(line.split()[1]) / 2**20, 1)  # kB
-    machine |= {"system": f"{platform.system()} {platform.machine()}", "python": sys.version.split()[0]}
-    if "torch" in sys.modules:
-        torch = sys.modules["torch"]
-        machine |= {"torch": torch.__version__, "torch_threads": torch.get_num_threads()}
-    try:
-        load_now = [round(v, 2) for v in os.getloadavg()]
-    except OSError:
-        load_now = None
-    return {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), **commit, "machine": machine,
-            "load": {"start": load_start, "end": load_now}}  # fmt: skip
-
-
-def write_whole(path: Path, data: bytes) -> None:
-    """Write ``path`` whole or not at all: a temporary file in the same folder, synced, then renamed."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp's 0600 would keep the file from others who read the folder
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ---------------------------------------------------------------------------------------------------

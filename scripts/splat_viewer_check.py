@@ -51,8 +51,8 @@ import numpy as np
 import torch
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from figures import provenance  # noqa: E402  (files beside this one, not a package)
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from common import provenance  # noqa: E402  (benchmarks/common.py and a file beside this one, not packages)
 from headless_chromium import Chromium, find_chromium  # noqa: E402
 
 from aesplat.errors import UserError  # noqa: E402

@@ -29,7 +29,8 @@ from pathlib import Path
 
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from common import provenance, write_whole  # noqa: E402
 from headless_chromium import Chromium  # noqa: E402  (a file beside this one, not a package)
 
 
@@ -120,8 +121,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=720)
     args = parser.parse_args(argv)
-
-    from figures import provenance, write_whole
 
     from aesplat.predict import main as predict
 

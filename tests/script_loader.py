@@ -14,7 +14,10 @@ DATA_PREP = REPO / "data_prep"
 
 
 def load_script(name: str, folder: Path = SCRIPTS) -> ModuleType:
-    """``<folder>/<name>.py`` (default ``scripts/``) as a fresh module."""
+    """``<folder>/<name>.py`` (default ``scripts/``) as a fresh module, its folder on ``sys.path`` as when it
+    runs as a script (the files beside it import each other by name)."""
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
     spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module  # dataclasses look their module up while the class is built

@@ -53,9 +53,16 @@ def test_two_run_grid_reports_and_resumes(tmp_path, monkeypatch):
                               "--free-seeds", "0")  # fmt: skip
     assert [(r["set"], r["cameras"], r["row"], r["seed"]) for r in runs] == [
         ("specular", "dataset", "full", "0"), ("specular", "dataset", "i2dc_only", "0")]  # fmt: skip
-    for r in runs:
-        assert float(r["psnr"]) > 3 and float(r["psnr_rest"]) > 3 and float(r["fit_seconds"]) > 0
     work = tmp_path / "work"
+    for r in runs:  # each row's figures are its own run's, as `aesplat test` scored them scene by scene
+        folder = work / "runs" / "specular_dataset" / r["row"] / "seed0" / "test-latest"
+        with open(folder / "per_scene.csv") as f:
+            scenes = list(csv.DictReader(f))
+        for metric in ("psnr", "psnr_rest", "ssim"):
+            mean = sum(float(s[metric]) for s in scenes) / len(scenes)
+            assert float(r[metric]) == pytest.approx(mean, rel=1e-6), (r["row"], metric)
+        assert float(r["psnr"]) != float(r["psnr_rest"]) and float(r["fit_seconds"]) > 0
+    assert runs[0]["psnr"] != runs[1]["psnr"]  # two appearance heads, two results
     assert json.loads((work / "shards" / "specular" / "manifest.json").read_text())["splits"]["test"][
         "highlight_share"] > 0.01  # fmt: skip
     line = table[("specular", "dataset", "i2dc_only")]
@@ -108,9 +115,8 @@ def test_full_tiny_grid_both_sets_and_pose_free(tmp_path):
 
 
 def test_primary_family_holm_adjusts_the_named_comparisons_only(tmp_path):
-    from aesplat.stats import paired_t_p
-
     runner = _runner()
+    paired_t_p = runner.paired_t_p
     run = runner.Run
     full = {0: 20.0, 1: 21.0, 2: 22.0}
     worse = {0: 18.0, 1: 18.5, 2: 19.6}  # highlight PSNR: clearly below `full` in every seed

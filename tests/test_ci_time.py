@@ -1,8 +1,8 @@
-"""benchmarks/ci_time.py: what it reads from the log of `.ci/run` (running CI itself is the command's job)."""
+"""scripts/ci_time.py: what it reads from the log of `.ci/run` (running CI itself is the command's job)."""
 
 import pytest
 
-from tests.script_loader import load_benchmark
+from tests.script_loader import load_script
 
 LOG = """\
 .venv/bin/python -m pytest -q -m "not slow"
@@ -19,7 +19,7 @@ INFO    -  Documentation built in 4.99 seconds
 
 @pytest.fixture(scope="module")
 def ci_time():
-    return load_benchmark("ci_time")
+    return load_script("ci_time")
 
 
 def test_each_leg_is_the_summary_pytest_printed_in_order(ci_time):

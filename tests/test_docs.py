@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 
 from tests.helpers import REPO
+from tests.script_loader import load_benchmark
 
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
 SUBCOMMANDS = ("fit", "validate", "test", "predict", "bench", "view", "export")
@@ -435,7 +436,7 @@ def test_the_paper_page_deltas_are_the_papers_rows_minus_full():
 def test_a_source_records_when_where_and_under_what_load_it_was_measured():
     import subprocess
 
-    record = _figures_module().provenance([0.5, 0.4, 0.3])
+    record = load_benchmark("common").provenance([0.5, 0.4, 0.3])
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True)
     assert record["commit"] == head.stdout.strip() and isinstance(record["modified"], bool)
     assert record["load"]["start"] == [0.5, 0.4, 0.3] and len(record["load"]["end"]) == 3

@@ -1,10 +1,10 @@
-"""benchmarks/slurm_jobs.py: the job times it reads from slurmctld's log, pytest's times, and its table."""
+"""scripts/slurm_jobs.py: the job times it reads from slurmctld's log, pytest's times, and its table."""
 
 import json
 
 import pytest
 
-from tests.script_loader import load_benchmark
+from tests.script_loader import load_script
 
 # slurmctld 22.05 log lines of the four jobs of one run (job 2 preempted and requeued), with unrelated lines.
 LOG = """\
@@ -33,7 +33,7 @@ ROLES = {"uninterrupted": "1", "preempted": "2", "eval": "3", "mismatch": "4"}
 
 @pytest.fixture(scope="module")
 def bench():
-    return load_benchmark("slurm_jobs")
+    return load_script("slurm_jobs")
 
 
 def test_job_times_come_from_the_log(bench):
@@ -90,7 +90,7 @@ def test_the_table_has_a_column_per_run_and_says_where_it_was_measured(bench, tm
          "jobs": {role: bench.job_times(role, job_id, events[job_id]) for role, job_id in ROLES.items()}}
         for r in (1, 2)
     ]  # fmt: skip
-    record = {"command": "python benchmarks/slurm_jobs.py", "date": "2026-11-26T10:00:00+00:00",
+    record = {"command": "python scripts/slurm_jobs.py", "date": "2026-11-26T10:00:00+00:00",
               "commit": "abc1234", "modified": False, "runs": runs,
               "machine": {"cpu": "CPU X", "cores": 2, "memory_gib": 24},
               "cluster": {"slurm": "22.05.8", "cred_expire_s": 30, "kill_wait": "10 sec"}}  # fmt: skip

@@ -1,10 +1,14 @@
-"""aesplat.stats: the 95 % t-interval the experiments' tables report over seeds."""
+"""benchmarks/common.py: the 95 % t-interval the experiments' tables report over seeds."""
 
 import math
 
 import pytest
 
-from aesplat.stats import T95, holm, paired_t_p, t_interval, t_quantile_95, t_two_sided_p
+from .script_loader import load_benchmark
+
+common = load_benchmark("common")
+T95, holm, paired_t_p, t_interval = common.T95, common.holm, common.paired_t_p, common.t_interval
+t_quantile_95, t_two_sided_p = common.t_quantile_95, common.t_two_sided_p
 
 
 def test_t_interval_by_hand():

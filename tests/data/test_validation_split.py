@@ -15,9 +15,10 @@ from aesplat.data import DataModule, convert_dataset, generate_dataset
 from aesplat.data.convert import held_out_keys
 from aesplat.data.pixelsplat_chunks import list_chunks, load_chunk
 from aesplat.errors import UserError
-from aesplat.train.curves import CURVE_COLUMNS
 
 from ..script_loader import load_benchmark, load_script
+
+CURVE_COLUMNS = load_benchmark("curves").CURVE_COLUMNS
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = {"frames": 8, "height": 16, "width": 24, "seed": 3, "scenes_per_chunk": 2}

@@ -18,7 +18,7 @@ STEPS = 6  # per training job; last.ckpt every 2 steps
 CPU_JOB = ["--gpus-per-node=0", "--ntasks-per-node=2", "--cpus-per-task=1"]
 FINAL_STATES = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "BOOT_FAIL"}
 # A file to which every submission appends {"role": ..., "job_id": ...} as a line of JSON, when set:
-# benchmarks/slurm_jobs.py learns from it which job was which (it reads their times from slurmctld's log).
+# scripts/slurm_jobs.py learns from it which job was which (it reads their times from slurmctld's log).
 RECORD_JOBS = os.environ.get("AESPLAT_SLURM_RECORD_JOBS")
 
 

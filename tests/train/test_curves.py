@@ -5,9 +5,10 @@ from pathlib import Path
 
 import torch
 
-from aesplat.train.curves import CURVE_COLUMNS, read_curve, write_curve
-
 from ..script_loader import load_benchmark
+
+curves = load_benchmark("curves")
+CURVE_COLUMNS, read_curve, write_curve = curves.CURVE_COLUMNS, curves.read_curve, curves.write_curve
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -105,3 +106,17 @@ def test_data_seeds_train_each_run_once_per_seed_and_report_its_interval(smoke_s
     assert n == 2 and half > 0
     assert "| pose-free, mean ± 95 % interval over 2 data seeds | 1 |" in table
     assert f"→ {mean:.2f} ± {half:.2f} |" in table
+
+
+def test_context_baselines_average_like_aesplat_test():
+    target = torch.full((1, 2, 3, 4, 4), 0.5)
+    same = torch.full((1, 1, 3, 4, 4), 0.5)
+    off = torch.full((1, 1, 3, 4, 4), 0.6)  # MSE 0.01 -> 20 dB
+    scenes = [
+        (torch.cat([off, off], 1), target),  # both views 20 dB, their mean too
+        (torch.cat([same + 0.2, off], 1), target),  # views 0.7 (14 dB) and 0.6 (20 dB), mean 0.65 (16.48 dB)
+    ]
+    values = curves.context_copy_psnr(scenes)
+    assert abs(values[curves.COPY_BEST] - 20.0) < 1e-4
+    mean = (20.0 + 10 * math.log10(1 / 0.15**2)) / 2
+    assert abs(values[curves.COPY_MEAN] - mean) < 1e-4

@@ -12,9 +12,6 @@ from aesplat.geometry import make_pose, quat_to_matrix
 from aesplat.images import save_image
 from aesplat.train.evaluation import summarize, visual_grid, write_results
 from aesplat.train.metrics import (
-    COPY_BEST,
-    COPY_MEAN,
-    context_copy_psnr,
     highlight_psnr,
     masked_psnr,
     overlap_bucket,
@@ -181,17 +178,3 @@ def test_visual_grid_and_png(tmp_path):
     assert torch.equal(grid[:, 8:16, 0:10], ctx[1, 0])
     save_image(grid, tmp_path / "g.png")
     assert (tmp_path / "g.png").stat().st_size > 0
-
-
-def test_context_baselines_average_like_aesplat_test():
-    target = torch.full((1, 2, 3, 4, 4), 0.5)
-    same = torch.full((1, 1, 3, 4, 4), 0.5)
-    off = torch.full((1, 1, 3, 4, 4), 0.6)  # MSE 0.01 -> 20 dB
-    scenes = [
-        (torch.cat([off, off], 1), target),  # both views 20 dB, their mean too
-        (torch.cat([same + 0.2, off], 1), target),  # views 0.7 (14 dB) and 0.6 (20 dB), mean 0.65 (16.48 dB)
-    ]
-    values = context_copy_psnr(scenes)
-    assert abs(values[COPY_BEST] - 20.0) < 1e-4
-    mean = (20.0 + 10 * math.log10(1 / 0.15**2)) / 2
-    assert abs(values[COPY_MEAN] - mean) < 1e-4

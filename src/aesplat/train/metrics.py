@@ -97,21 +97,3 @@ def overlap_bucket(overlap: float | None, buckets: dict[str, tuple[float, float]
         if low <= overlap < high:
             return name
     return "unknown"
-
-
-# Names of the copy-the-context yardsticks, as the demo report and the learning curves print them.
-COPY_MEAN, COPY_BEST = "mean of the context views", "the better context view of each scene"
-
-
-def context_copy_psnr(pairs: list[tuple[Tensor, Tensor]]) -> dict[str, float]:
-    """PSNR of renders that need no model, averaged like `aesplat test` (over each scene's targets, then over
-    scenes): the mean of the context views, and the better of the context views for each scene.
-
-    pairs: (context images [1, Vc, 3, H, W], target images [1, Vt, 3, H, W]) per scene.
-    """
-    mean_view, best_view = [], []
-    for context, target in pairs:
-        tgt = target[0]
-        mean_view.append(psnr(context[0].mean(0, keepdim=True).expand_as(tgt), tgt).mean().item())
-        best_view.append(max(psnr(view[None].expand_as(tgt), tgt).mean().item() for view in context[0]))
-    return {COPY_MEAN: sum(mean_view) / len(mean_view), COPY_BEST: sum(best_view) / len(best_view)}

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """How long CI takes: `.ci/run` on a clean clone of this repository's HEAD, timed, install included.
 
-    python benchmarks/ci_time.py [--out docs/results/ci] [--keep]
+    python scripts/ci_time.py [--out docs/results/ci] [--keep]
 
 Clones HEAD into a temporary folder (committed files only, as CI sees them), runs ``bash .ci/run`` there with
 its output in ``ci.log`` beside the clone, and writes ``OUT/ci.json``: the wall time of the whole run, the
@@ -25,8 +25,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "scripts"))
-from figures import provenance, write_whole  # noqa: E402
+sys.path.insert(0, str(REPO / "benchmarks"))
+from common import provenance, write_whole  # noqa: E402
 
 # pytest's last line: "840 passed, 5 skipped, 4 deselected, 221 warnings in 327.07s (0:05:27)"
 SUMMARY = re.compile(r"^=*\s*(?P<counts>\d+ \w+(?:, \d+ \w+)*) in (?P<seconds>[\d.]+)s\b")
@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     if not args.keep:
         shutil.rmtree(folder, ignore_errors=True)
-    record = {"command": "python benchmarks/ci_time.py", **provenance(load_start), "seconds": round(seconds, 1),
+    record = {"command": "python scripts/ci_time.py", **provenance(load_start), "seconds": round(seconds, 1),
               "legs": legs}  # fmt: skip
     write_whole(args.out / "ci.json", (json.dumps(record, indent=1) + "\n").encode())
     print(f"ci_time: .ci/run took {seconds:.0f} s; wrote {args.out / 'ci.json'}"

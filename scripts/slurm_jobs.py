@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Wall times of the SLURM jobs the `slurm` tests submit (tests/train/test_slurm_jobs.py), from slurmctld's log.
 
-    python benchmarks/slurm_jobs.py [--runs 2] [--out docs/results/slurm]
+    python scripts/slurm_jobs.py [--runs 2] [--out docs/results/slurm]
 
 Each run is one ``pytest -m slurm tests/train/test_slurm_jobs.py`` (the four tests, unchanged, submitting the
 shipped slurm/train.sbatch and slurm/eval.sbatch) with AESPLAT_SLURM_RECORD_JOBS set, so the tests write down
@@ -35,8 +35,8 @@ from pathlib import Path
 
 import torch  # noqa: F401  (provenance() records the version of torch the tests ran with)
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-from figures import provenance, write_whole  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from common import provenance, write_whole  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = "tests/train/test_slurm_jobs.py"
@@ -286,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
             raise MeasureError(f"cannot read slurmctld's log {cluster['log']!r} (run as its SlurmUser)")
         load_start = [round(v, 2) for v in os.getloadavg()]
         given = sys.argv[1:] if argv is None else argv
-        command = shlex.join(["python", "benchmarks/slurm_jobs.py", *given])
+        command = shlex.join(["python", "scripts/slurm_jobs.py", *given])
         runs = []
         for run in range(1, args.runs + 1):
             runs.append(measure(run, env, Path(cluster["log"])))

@@ -1,30 +1,34 @@
-"""Learning curves: held-out metrics at fixed step intervals, against steps and training seconds.
+"""Learning curves: held-out metrics at fixed step intervals, against steps and training seconds, and the
+copy-the-context yardsticks they and the demo report print.
 
 ``LearningCurve`` is a callback for `aesplat fit`; ``benchmarks/learning_curves.py`` adds it to each run it
-trains (``--trainer.callbacks+=aesplat.train.curves.LearningCurve``). At step 0 (the untrained model), every
-``every_n_steps`` steps and at the last step it evaluates the model on the data module's validation scenes
-(``val_*`` columns; when the shards have a validation split) and on its test scenes, exactly as `aesplat test`
-scores them (``AESplatModule._evaluate``: image metrics with the run's own cameras, pose
-errors against the ground truth), and rewrites a CSV with one row per point. ``train_seconds`` is the wall
-time spent training (data loading, forward, backward, update, checkpoint writes), evaluation excluded; it is
-kept in the checkpoints, so a resumed run continues the clock where its checkpoint left it. Rows written
-after the checkpoint a run resumes from are dropped (those steps are trained again), and no finished point is
-evaluated twice. The copy-the-context yardsticks (``context_copy_psnr``) are the same at every point and are
-repeated in each row so that every CSV stands alone. Choices between runs are made on the ``val_*`` columns;
-the test columns are reported for the chosen run (docs/validation.md).
+trains (``--trainer.callbacks+=curves.LearningCurve``, with ``benchmarks/`` on ``sys.path``). At step 0 (the
+untrained model), every ``every_n_steps`` steps and at the last step it evaluates the model on the data module's
+validation scenes (``val_*`` columns; when the shards have a validation split) and on its test scenes, exactly
+as `aesplat test` scores them (``AESplatModule._evaluate``: image metrics with the run's own cameras, pose
+errors against the ground truth), and rewrites a CSV with one row per point. ``train_seconds`` is the wall time
+spent training (data loading, forward, backward, update, checkpoint writes), evaluation excluded; it is kept in
+the checkpoints, so a resumed run continues the clock where its checkpoint left it. Rows written after the
+checkpoint a run resumes from are dropped (those steps are trained again), and no finished point is evaluated
+twice. The copy-the-context yardsticks (``context_copy_psnr``) are the same at every point and are repeated in
+each row so that every CSV stands alone. Choices between runs are made on the ``val_*`` columns; the test
+columns are reported for the chosen run (docs/validation.md).
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import math
 import time
 from pathlib import Path
 
 import torch
+from common import write_whole
 from lightning.pytorch import Callback, LightningModule, Trainer
+from torch import Tensor
 
-from .metrics import COPY_BEST, COPY_MEAN, context_copy_psnr
+from aesplat.train.metrics import psnr
 
 CURVE_COLUMNS = (
     "step", "train_seconds", "psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg", "num_scenes",
@@ -33,6 +37,24 @@ CURVE_COLUMNS = (
     "val_copy_mean_psnr", "val_copy_best_psnr",
 )  # fmt: skip
 _METRICS = ("psnr", "ssim", "lpips", "rot_err_deg", "trans_err_deg")
+# Names of the copy-the-context yardsticks, as the demo report and the learning curves print them.
+COPY_MEAN, COPY_BEST = "mean of the context views", "the better context view of each scene"
+
+
+def context_copy_psnr(pairs: list[tuple[Tensor, Tensor]]) -> dict[str, float]:
+    """PSNR of renders that need no model, averaged like `aesplat test` (over each scene's targets, then over
+    scenes): the mean of the context views, and the better of the context views for each scene.
+
+    pairs: (context images [1, Vc, 3, H, W], target images [1, Vt, 3, H, W]) per scene.
+    """
+    mean_view, best_view = [], []
+    for context, target in pairs:
+        tgt = target[0]
+        mean_view.append(psnr(context[0].mean(0, keepdim=True).expand_as(tgt), tgt).mean().item())
+        best_view.append(max(psnr(view[None].expand_as(tgt), tgt).mean().item() for view in context[0]))
+    return {COPY_MEAN: sum(mean_view) / len(mean_view), COPY_BEST: sum(best_view) / len(best_view)}
+
+
 SPLIT_PREFIX = {"test": "", "validation": "val_"}  # the columns of each split's figures
 
 
@@ -48,19 +70,16 @@ def read_curve(path: str | Path) -> list[dict[str, float]]:
 
 
 def write_curve(path: str | Path, rows: list[dict[str, float]]) -> None:
-    """Write rows (CURVE_COLUMNS; NaN or missing as empty cells) through a temporary file, so an interrupted
-    write never leaves half a curve."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=CURVE_COLUMNS)
-        writer.writeheader()
-        for row in rows:
-            cells = {k: row.get(k, math.nan) for k in CURVE_COLUMNS}
-            writer.writerow({k: "" if isinstance(v, float) and math.isnan(v) else _cell(k, v) for k, v in
-                             cells.items()})  # fmt: skip
-    tmp.replace(path)
+    """Write rows (CURVE_COLUMNS; NaN or missing as empty cells) whole, so an interruption never leaves half a
+    curve."""
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=CURVE_COLUMNS)
+    writer.writeheader()
+    for row in rows:
+        cells = {k: row.get(k, math.nan) for k in CURVE_COLUMNS}
+        writer.writerow({k: "" if isinstance(v, float) and math.isnan(v) else _cell(k, v) for k, v in
+                         cells.items()})  # fmt: skip
+    write_whole(Path(path), text.getvalue().encode())
 
 
 def _cell(key: str, value: float) -> str:
