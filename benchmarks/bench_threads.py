@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from common import demo_shards
+from common import AESPLAT, demo_shards
 
 REPO = Path(__file__).resolve().parents[1]
 BUSY = "while True: pass"
@@ -46,7 +46,7 @@ def _env(**extra: str) -> dict[str, str]:
 
 def fit_seconds(shards: Path, run_dir: Path, steps: int, size: int, threads: str | None) -> float:
     """Wall time of one `aesplat fit` of the demo config (imports and start-up included)."""
-    cmd = [sys.executable, "-m", "aesplat.cli", "fit", "-c", "conf/demo.yaml", "--data.root", str(shards),
+    cmd = [*AESPLAT, "fit", "-c", "conf/demo.yaml", "--data.root", str(shards),
            "--data.image_size", str(size), "--trainer.default_root_dir", str(run_dir),
            "--trainer.max_steps", str(steps), "--trainer.logger", "false", "--trainer.enable_progress_bar",
            "false", "--trainer.check_val_every_n_epoch", "1000000"]  # fmt: skip

@@ -22,6 +22,7 @@ from pathlib import Path
 from aesplat.files import atomic_write
 
 REPO = Path(__file__).resolve().parents[1]
+AESPLAT = [sys.executable, "-m", "aesplat.cli"]  # the `aesplat` command of this interpreter's environment
 
 
 def provenance(load_start: list[float] | None = None) -> dict:

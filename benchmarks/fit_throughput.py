@@ -29,7 +29,7 @@ import sys
 from pathlib import Path
 
 import yaml
-from common import synthetic_shards
+from common import AESPLAT, synthetic_shards
 
 from aesplat.train.loss import vgg16_weights_path
 
@@ -106,7 +106,7 @@ def main() -> None:
     command = fit_command(args.config, shards, gaps, run_dir, args.steps, args.window, extra)
     print(f"$ {shlex.join(command)}\n", flush=True)
     env = {**os.environ, "WANDB_MODE": "disabled"}
-    subprocess.run([sys.executable, "-m", "aesplat.cli", *command[1:]], check=True, env=env)
+    subprocess.run([*AESPLAT, *command[1:]], check=True, env=env)
     figures = summarize(run_dir / "metrics.csv")
     print(f"\n## aesplat fit {' '.join(f'-c {c}' for c in args.config)}: {args.steps} steps, "
           f"windows of {args.window}\n")  # fmt: skip

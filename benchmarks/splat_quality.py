@@ -45,7 +45,7 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from common import demo_shards, provenance, t_interval, write_whole
+from common import AESPLAT, demo_shards, provenance, t_interval, write_whole
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -114,11 +114,6 @@ class Run:
         return work / "runs" / self.variant / f"seed{self.seed}"
 
 
-def aesplat() -> list[str]:
-    """The ``aesplat`` command of this interpreter's environment."""
-    return [sys.executable, "-c", "from aesplat.cli import main; main()"]
-
-
 def prepare_data(work: Path) -> tuple[Path, Path]:
     """The demo's scenes, and their shards at the demo's size and at twice it (each made once)."""
     sizes = [(size, work / f"shards_{size}") for size in (SIZE, SIZE * TRANSFER_SCALE)]
@@ -152,7 +147,7 @@ def _aesplat(args: list[str], log: Path) -> None:
     """``aesplat ARGS`` with ``QUIET``, its output appended to ``log``."""
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "ab") as f:
-        subprocess.run([*aesplat(), *args, *QUIET], check=True, stdout=f, stderr=subprocess.STDOUT)
+        subprocess.run([*AESPLAT, *args, *QUIET], check=True, stdout=f, stderr=subprocess.STDOUT)
 
 
 def warm_start(variant: str, data: Path, work: Path, settings: Settings) -> Path:
