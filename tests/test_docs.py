@@ -152,6 +152,7 @@ def test_documented_script_command_parses(page, command, monkeypatch):
     monkeypatch.chdir(REPO)
     monkeypatch.setattr(argparse.ArgumentParser, "parse_args", parse_then_stop)
     monkeypatch.setattr("sys.argv", [path, *args])
+    monkeypatch.syspath_prepend(str((REPO / path).parent))  # as when it runs: its neighbours import by name
     spec = importlib.util.spec_from_file_location(f"documented_{Path(path).stem}", REPO / path)
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses in the script look their module up
