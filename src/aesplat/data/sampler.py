@@ -120,7 +120,9 @@ class ViewSampler:
             if gap_range(frames, allowed, smallest_gap(count, self.num_targets, self.min_distance)) is not None:
                 return None
             return "scene_too_short" if frames - 1 < allowed[0] else "too_few_between"
-        pool = self.pool(frames, key, count)
+        return self._pool_unusable(self.pool(frames, key, count), allowed)
+
+    def _pool_unusable(self, pool: list[ViewPick], allowed: tuple[int, int]) -> str | None:
         if not pool:
             return "scene_too_short"
         options = [p for p in pool if allowed[0] <= p.gap <= allowed[1]]
@@ -132,18 +134,17 @@ class ViewSampler:
              rng: np.random.Generator) -> ViewPick | str:  # fmt: skip
         """One example of a scene, or why it gives none now (:meth:`unusable`; ``too_few_targets`` when the
         pool example drawn holds too few targets)."""
-        if self.fixed_pool:
-            options = [p for p in self.pool(frames, key, count) if allowed[0] <= p.gap <= allowed[1]]
-            if options:
-                chosen = options[int(rng.integers(len(options)))]
-                if len(chosen.target) >= self.num_targets:
-                    targets = rng.choice(np.array(chosen.target), size=self.num_targets, replace=False)
-                    return ViewPick(chosen.context, tuple(sorted(int(t) for t in targets)))
-        else:
+        if not self.fixed_pool:
             pick = sample_views(frames, allowed, count, self.num_targets, self.min_distance, rng)
-            if pick is not None:
-                return pick
-        return self.unusable(frames, key, allowed, count) or "too_few_targets"
+            return pick if pick is not None else self.unusable(frames, key, allowed, count) or "too_few_targets"
+        pool = self.pool(frames, key, count)  # drawn once: the reason below reads the same pool
+        options = [p for p in pool if allowed[0] <= p.gap <= allowed[1]]
+        if options:
+            chosen = options[int(rng.integers(len(options)))]
+            if len(chosen.target) >= self.num_targets:
+                targets = rng.choice(np.array(chosen.target), size=self.num_targets, replace=False)
+                return ViewPick(chosen.context, tuple(sorted(int(t) for t in targets)))
+        return self._pool_unusable(pool, allowed) or "too_few_targets"
 
 
 @dataclass(frozen=True)
