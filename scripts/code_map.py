@@ -7,8 +7,8 @@ For the tree of this checkout and, with ``--before REV``, for the tree of an ear
 - lines and files of Python in src/aesplat, benchmarks/, scripts/ and tests/;
 - the rooms of the package (each sub-package of ``aesplat`` and each of its top-level modules) that import
   each other in a circle: an import that runs back up a floor makes one;
-- the test modules that import another test module (``test_*.py``), which the suite's helpers modules are
-  there to prevent;
+- the test modules that import another test module (``test_*.py``), which the suite's shared modules
+  (``tests/helpers.py`` and the like) are there to prevent;
 - the rooms by floor (``map.md``): a room is one floor above the highest room it imports.
 
     python scripts/code_map.py --before 21adc7c   # docs/results/architecture/code_map.json and map.md

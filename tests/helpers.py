@@ -1,4 +1,4 @@
-"""Helpers shared across the test suite: synthetic shards, a tiny checkpoint as `aesplat fit` lays it out, the
+"""What the whole test suite shares: synthetic shards, a tiny checkpoint as `aesplat fit` lays it out, the
 `aesplat` command run in this process, and what several suites check against."""
 
 from __future__ import annotations
