@@ -7,6 +7,7 @@ backends never import the interface that dispatches to them).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -79,6 +80,37 @@ class RasterizerConfig:
         return {"backend": self.backend, **asdict(self.options)}
 
 
+class DeferredCount:
+    """A count that lives on the device until it is read: ``int()``, ``==``, ``<`` or formatting read it once
+    (on a GPU, that waits for the work queued before it), and nothing reads it otherwise."""
+
+    def __init__(self, read: Callable[[], int]) -> None:
+        self._read: Callable[[], int] | None = read
+        self._value = 0
+
+    def __int__(self) -> int:
+        if self._read is not None:
+            self._value, self._read = int(self._read()), None
+        return self._value
+
+    __index__ = __int__
+
+    def __eq__(self, other: object) -> bool:
+        return int(self) == other
+
+    def __lt__(self, other: int) -> bool:
+        return int(self) < other
+
+    def __hash__(self) -> int:
+        return hash(int(self))
+
+    def __format__(self, spec: str) -> str:
+        return format(int(self), spec)
+
+    def __repr__(self) -> str:
+        return repr(int(self)) if self._read is None else "DeferredCount(not read)"
+
+
 @dataclass(frozen=True)
 class RenderStats:
     """What a render call did: the "effects on demand" accounting.
@@ -88,7 +120,7 @@ class RenderStats:
 
     backend: str
     pairs: int  # B * V * N
-    culled_transparent: int  # opacity < 1/255
+    culled_transparent: int | DeferredCount  # opacity < 1/255 (the gsplat backend's is read when asked for)
     culled_depth: int  # behind the camera, at its centre, on or before the near plane, beyond far
     culled_footprint: int  # degenerate 2D covariance, or bounding box off the image
     visible: int  # pairs that reached sorting and compositing
