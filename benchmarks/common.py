@@ -27,8 +27,9 @@ AESPLAT = [sys.executable, "-m", "aesplat.cli"]  # the `aesplat` command of this
 
 def provenance(load_start: list[float] | None = None) -> dict:
     """When, on what and under what load a figure was measured: the UTC time, the commit (and whether tracked
-    files other than the documentation differed from it), the machine, and the 1-, 5- and 15-minute load
-    averages at the start (``load_start``, when the caller read them) and now."""
+    files other than the documentation differed from it; in a copy of the tree without git, ``AESPLAT_COMMIT``),
+    the machine, and the 1-, 5- and 15-minute load averages at the start (``load_start``, when the caller read
+    them) and now."""
 
     def git(*args: str) -> str:
         return subprocess.run(
@@ -39,8 +40,8 @@ def provenance(load_start: list[float] | None = None) -> dict:
         code = ("--", ".", ":(exclude)docs", ":(exclude)*.md")  # pages do not change a measurement
         commit = {"commit": git("rev-parse", "--short", "HEAD"),
                   "modified": bool(git("status", "--porcelain", "--untracked-files=no", *code))}  # fmt: skip
-    except (OSError, subprocess.CalledProcessError):
-        commit = {"commit": None, "modified": None}
+    except (OSError, subprocess.CalledProcessError):  # a copy of the tree without git
+        commit = {"commit": os.environ.get("AESPLAT_COMMIT"), "modified": None}
     machine = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "memory_gib": None}
     for name, prefix in (("/proc/cpuinfo", "model name"), ("/proc/meminfo", "MemTotal:")):
         try:

@@ -3,9 +3,11 @@
     python benchmarks/fit_throughput.py -c conf/re10k.yaml --out outputs/fit-throughput --steps 300
     python benchmarks/fit_throughput.py -c conf/smoke.yaml --out /tmp/fit --steps 20 --window 5 -- \
         --trainer.accelerator cpu                                          # extra `aesplat fit` arguments
+    python benchmarks/fit_throughput.py -c conf/re10k.yaml --out OUT/fit-3 --shards OUT/shards \
+        --json OUT/fit-3.json -- --data.num_context_views 3 --model.net.view_aggregation pool
 
-Writes synthetic scenes as shards at the config's image size into OUT/shards (kept for the next call), then
-runs the product's command line, printed before it starts:
+Writes synthetic scenes as shards at the config's image size into OUT/shards (or ``--shards``; kept for the
+next call), then runs the product's command line, printed before it starts:
 
     aesplat fit -c CONFIG --data.root OUT/shards --trainer.max_steps STEPS --trainer.logger+=CSVLogger ...
 
@@ -14,13 +16,15 @@ checkpoint is about 12 GB) and the run's logs in OUT/run/metrics.csv. The ``Thro
 ``train/sec_per_step``, ``train/samples_per_sec`` and ``train/peak_memory_gib`` over windows of ``--window``
 steps (the logging interval is set to the same, so each window is written once). The report is the median
 over the windows after the first (the first holds compilation and warm-up), the peak memory and the skipped
-steps (``train/skipped_steps``, which the module logs).
+steps (``train/skipped_steps``, which the module logs). ``--json`` also writes them, with the command, the
+context views, the GPU and the versions (``provenance()``), whole or not at all.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import shlex
 import statistics
@@ -29,19 +33,24 @@ import sys
 from pathlib import Path
 
 import yaml
-from common import AESPLAT, synthetic_shards
+from common import AESPLAT, provenance, synthetic_shards, write_whole
 
 from aesplat.train.loss import vgg16_weights_path
 
 
-def shards_for(config: list[str], out: Path) -> tuple[Path, list[int]]:
-    """Synthetic shards at the configs' image size in ``out/shards`` (made once); the gap range they hold."""
-    size = 224
+def data_setting(config: list[str], key: str, default):
+    """``data.KEY`` of the layered configs (the last that sets it), else ``default``."""
     for path in config:
-        size = ((yaml.safe_load(Path(path).read_text()) or {}).get("data") or {}).get("image_size", size)
-    shards, gaps_file = out / "shards", out / "shards" / "gaps.txt"
+        default = ((yaml.safe_load(Path(path).read_text()) or {}).get("data") or {}).get(key, default)
+    return default
+
+
+def shards_for(config: list[str], root: Path) -> tuple[Path, list[int]]:
+    """Synthetic shards at the configs' image size in ``root/shards`` (made once); the gap range they hold."""
+    size = data_setting(config, "image_size", 224)
+    shards, gaps_file = root / "shards", root / "shards" / "gaps.txt"
     if not gaps_file.is_file():
-        gaps_file.write_text(" ".join(str(g) for g in synthetic_shards(out, size, scenes=4)[1]))
+        gaps_file.write_text(" ".join(str(g) for g in synthetic_shards(root, size, scenes=4)[1]))
     return shards, [int(g) for g in gaps_file.read_text().split()]
 
 
@@ -89,6 +98,8 @@ def main() -> None:
     p.add_argument("--out", type=Path, required=True, help="shards and the run go here")
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--window", type=int, default=50, help="steps per throughput window (and logging interval)")
+    p.add_argument("--shards", type=Path, help="make (once) and read the synthetic shards here (default: OUT)")
+    p.add_argument("--json", type=Path, help="also write the figures, the command and the versions here")
     p.add_argument("extra", nargs="*", help="more `aesplat fit` arguments, after --")
     args = p.parse_args()
     if args.steps < 2 * args.window:
@@ -96,7 +107,7 @@ def main() -> None:
     run_dir = args.out / "run"
     if run_dir.exists():
         raise SystemExit(f"{run_dir} exists: remove it (or pick another --out) to measure again")
-    shards, gaps = shards_for(args.config, args.out)
+    shards, gaps = shards_for(args.config, args.shards or args.out)
     extra = list(args.extra)
     if not vgg16_weights_path().is_file():  # as bench_train_step.py does: time it without LPIPS
         print(
@@ -113,6 +124,36 @@ def main() -> None:
     print("| measure | value |\n| --- | ---: |")
     for key, value in figures.items():
         print(f"| {key} | {value:.3f} |" if isinstance(value, float) else f"| {key} | {value} |")
+    if args.json:
+        record = {"command": shlex.join(command), "context_views": context_views(args.config, extra),
+                  "figures": figures, "versions": versions(), **provenance()}  # fmt: skip
+        write_whole(args.json, (json.dumps(record, indent=2) + "\n").encode())
+
+
+def context_views(config: list[str], extra: list[str]) -> int | list[int]:
+    """The run's ``data.num_context_views``: the last ``--data.num_context_views`` given, else the configs'."""
+    views = data_setting(config, "num_context_views", 2)
+    for flag, value in zip(extra, extra[1:]):
+        if flag == "--data.num_context_views":
+            views = yaml.safe_load(value)
+    return views
+
+
+def versions() -> dict[str, str]:
+    """The GPU (or "no CUDA") and the versions of torch, gsplat and Lightning that ran the fit."""
+    import importlib.metadata
+
+    import torch
+
+    def version(name: str) -> str:
+        try:
+            return importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            return "not installed"
+
+    device = torch.cuda.get_device_name() if torch.cuda.is_available() else "no CUDA"
+    return {"device": device, "torch": torch.__version__, "gsplat": version("gsplat"),
+            "lightning": version("lightning")}  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -11,8 +11,16 @@
 #   tuned        the config as shipped (regional compile, fused AdamW), compared with eager's losses
 #   bf16-heads   tuned + model.net.options.head_precision=bf16, compared with eager's losses
 #   fit          `aesplat fit -c CONFIG` itself on synthetic shards, FIT_STEPS steps (default 300): median seconds
-#                per step after the first 50-step window (compilation), samples/s, peak memory and skipped steps,
-#                read from the run's own logs (benchmarks/fit_throughput.py; OUT/fit/ holds the shards and the run)
+#                per step after the first FIT_WINDOW-step window (compilation), samples/s, peak memory and skipped
+#                steps, read from the run's own logs (benchmarks/fit_throughput.py; also OUT/fit.json; the shards
+#                in OUT/shards, the run in OUT/fit/run)
+#   fit-N        the same fit at N context views (N >= 2) with the pooled appearance head
+#                (--data.num_context_views N --model.net.view_aggregation pool): OUT/fit-N.md and .json
+#   peer         benchmarks/peer_step.py: this project's network and NAS3R's (its code in PEER_SOURCE, default
+#                .peer/nas3r), forward + backward without the render, batch 10, 2 + 1 views, 224², bf16,
+#                one after the other in one process (PEER_RUNS, default "nas3r aesplat aesplat-compiled"; each
+#                PEER_STEPS steps, default 20, after WARMUP): OUT/peer.md and OUT/peer.json
+# Parts not named run in this order: tests render eager eager-again tuned bf16-heads fit fit-3 fit-4 fit-6 peer.
 # A part whose .md exists is skipped, so an interrupted run resumes where it stopped; delete a file to redo
 # that part. STEPS (default 200), WARMUP (5), SEED (0) and CONFIG (conf/re10k.yaml) change the runs; PYTHON
 # picks the interpreter (default .venv/bin/python, else python3). DEVICE=cpu runs the training parts on the
@@ -34,9 +42,12 @@ if [[ -z ${PYTHON:-} ]]; then
     if [[ -x .venv/bin/python ]]; then PYTHON=.venv/bin/python; else PYTHON=python3; fi
 fi
 export PYTHONUNBUFFERED=1
-ALL_PARTS="tests render eager eager-again tuned bf16-heads fit"
+ALL_PARTS="tests render eager eager-again tuned bf16-heads fit fit-3 fit-4 fit-6 peer"
+PEER_SOURCE=${PEER_SOURCE:-.peer/nas3r}
+PEER_STEPS=${PEER_STEPS:-20}
+PEER_RUNS=${PEER_RUNS:-nas3r aesplat aesplat-compiled}
 if [[ $DEVICE == cpu ]]; then
-    PARTS=${PARTS:-eager eager-again tuned bf16-heads fit}
+    PARTS=${PARTS:-eager eager-again tuned bf16-heads fit fit-3}
     [[ " $PARTS " != *" tests "* && " $PARTS " != *" render "* ]] || {
         echo "gpu_throughput.sh: the tests and render parts need CUDA (DEVICE=cpu)" >&2
         exit 2
@@ -44,8 +55,8 @@ if [[ $DEVICE == cpu ]]; then
 fi
 PARTS=${PARTS:-$ALL_PARTS}
 for part in $PARTS; do
-    [[ " $ALL_PARTS " == *" $part "* ]] || {
-        echo "gpu_throughput.sh: unknown part '$part'; the parts are: $ALL_PARTS" >&2
+    [[ " $ALL_PARTS " == *" $part "* || ($part =~ ^fit-[0-9]+$ && ${part#fit-} -ge 2) ]] || {
+        echo "gpu_throughput.sh: unknown part '$part'; the parts are: $ALL_PARTS (fit-N for any N >= 2)" >&2
         exit 2
     }
 done
@@ -87,12 +98,19 @@ run_part() {
         eager-again) bench eager-again "${EAGER[@]}" --compare "$OUT/eager.csv" ;;
         tuned) bench tuned --compare "$OUT/eager.csv" ;;
         bf16-heads) bench bf16-heads --set model.net.options.head_precision=bf16 --compare "$OUT/eager.csv" ;;
-        fit)
-            rm -rf "$OUT/fit/run"  # a failed or interrupted fit starts again
+        fit | fit-*)
+            rm -rf "${OUT:?}/$1/run"  # a failed or interrupted fit starts again
             local extra=()
-            [[ $DEVICE != cpu ]] || extra=(--trainer.accelerator cpu --trainer.precision 32-true)
-            "$PYTHON" benchmarks/fit_throughput.py -c "$CONFIG" --out "$OUT/fit" --steps "$FIT_STEPS" \
-                --window "$FIT_WINDOW" -- "${extra[@]}"
+            [[ $1 == fit ]] || extra=(--data.num_context_views "${1#fit-}" --model.net.view_aggregation pool)
+            [[ $DEVICE != cpu ]] || extra+=(--trainer.accelerator cpu --trainer.precision 32-true)
+            "$PYTHON" benchmarks/fit_throughput.py -c "$CONFIG" --out "$OUT/$1" --shards "$OUT" \
+                --steps "$FIT_STEPS" --window "$FIT_WINDOW" --json "$OUT/$1.json" -- "${extra[@]}"
+            ;;
+        peer)
+            local extra=()
+            [[ $DEVICE != cpu ]] || extra=(--batch 1 --size 56 --precision fp32)
+            "$PYTHON" benchmarks/peer_step.py --source "$PEER_SOURCE" --config "$CONFIG" --device "$DEVICE" \
+                --steps "$PEER_STEPS" --warmup "$WARMUP" --runs $PEER_RUNS --out "$OUT/peer.json" "${extra[@]}"
             ;;
     esac
 }

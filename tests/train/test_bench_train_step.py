@@ -102,9 +102,10 @@ def _suite(tmp_path, *parts, **env_vars):
                           text=True, timeout=900)  # fmt: skip
 
 
-def test_the_gpu_suite_rejects_an_unknown_part_before_any_work(tmp_path):
-    done = _suite(tmp_path, "eager", "warp-drive")
-    assert done.returncode == 2 and "unknown part 'warp-drive'" in done.stderr
+@pytest.mark.parametrize("part", ["warp-drive", "fit-1", "fit-x"])
+def test_the_gpu_suite_rejects_an_unknown_part_before_any_work(tmp_path, part):
+    done = _suite(tmp_path, "eager", part)
+    assert done.returncode == 2 and f"unknown part '{part}'" in done.stderr
     assert not (tmp_path / "out").exists()
 
 
@@ -148,9 +149,12 @@ def test_the_gpu_suite_rehearsed_on_the_cpu_resumes_and_compares(bench, tmp_path
         and "| skipped steps | 0 |" in fit
     )
     assert (out / "fit" / "run" / "metrics.csv").is_file()
+    fit3 = json.loads((out / "fit-3.json").read_text())  # three context views, the pooled head, the same shards
+    assert fit3["context_views"] == 3 and "--model.net.view_aggregation pool" in fit3["command"]
+    assert f"--data.root {out / 'shards'}" in fit3["command"] and fit3["figures"]["skipped steps"] == 0
 
     again = _suite(tmp_path, **rehearse)
-    assert again.returncode == 0 and again.stdout.count("done before") == 5
+    assert again.returncode == 0 and again.stdout.count("done before") == 6
 
     needs_cuda = _suite(tmp_path, "render", **rehearse)
     assert needs_cuda.returncode == 2 and "need CUDA" in needs_cuda.stderr
