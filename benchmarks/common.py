@@ -27,7 +27,7 @@ AESPLAT = [sys.executable, "-m", "aesplat.cli"]  # the `aesplat` command of this
 
 def provenance(load_start: list[float] | None = None) -> dict:
     """When, on what and under what load a figure was measured: the UTC time, the commit (and whether tracked
-    files other than the documentation differed from it; in a copy of the tree without git, ``AESPLAT_COMMIT``),
+    files other than the documentation differed from it; for a copy of the tree, ``AESPLAT_COMMIT`` when set),
     the machine, and the 1-, 5- and 15-minute load averages at the start (``load_start``, when the caller read
     them) and now."""
 
@@ -40,8 +40,10 @@ def provenance(load_start: list[float] | None = None) -> dict:
         code = ("--", ".", ":(exclude)docs", ":(exclude)*.md")  # pages do not change a measurement
         commit = {"commit": git("rev-parse", "--short", "HEAD"),
                   "modified": bool(git("status", "--porcelain", "--untracked-files=no", *code))}  # fmt: skip
-    except (OSError, subprocess.CalledProcessError):  # a copy of the tree without git
-        commit = {"commit": os.environ.get("AESPLAT_COMMIT"), "modified": None}
+    except (OSError, subprocess.CalledProcessError):
+        commit = {"commit": None, "modified": None}
+    if os.environ.get("AESPLAT_COMMIT"):  # a copy of the tree sent elsewhere: its git, if any, may be stale
+        commit = {"commit": os.environ["AESPLAT_COMMIT"], "modified": None}
     machine = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "memory_gib": None}
     for name, prefix in (("/proc/cpuinfo", "model name"), ("/proc/meminfo", "MemTotal:")):
         try:

@@ -14,7 +14,8 @@ next call), then runs the product's command line, printed before it starts:
 with the curriculum widened to the gaps the synthetic scenes hold, validation and checkpoints off (a ``large``
 checkpoint is about 12 GB) and the run's logs in OUT/run/metrics.csv. The ``Throughput`` callback logs
 ``train/sec_per_step``, ``train/samples_per_sec`` and ``train/peak_memory_gib`` over windows of ``--window``
-steps (the logging interval is set to the same, so each window is written once). The report is the median
+steps (the logging interval and the CSV logger's flush are set to the same, so each window is written once, as
+it ends: a run stopped early leaves the windows it finished in metrics.csv). The report is the median
 over the windows after the first (the first holds compilation and warm-up), the peak memory and the skipped
 steps (``train/skipped_steps``, which the module logs). ``--json`` also writes them, with the command, the
 context views, the GPU and the versions (``provenance()``), whole or not at all.
@@ -64,7 +65,8 @@ def fit_command(config: list[str], shards: Path, gaps: list[int], run_dir: Path,
         "--trainer.limit_val_batches", "0", "--trainer.num_sanity_val_steps", "0",
         "--checkpoint.save_top_k", "0", "--last_checkpoint.save_last", "false",
         "--trainer.logger+=CSVLogger", "--trainer.logger.save_dir", str(run_dir), "--trainer.logger.name", "",
-        "--trainer.logger.version", "", "--trainer.log_every_n_steps", str(window), "--throughput.window",
+        "--trainer.logger.version", "", "--trainer.logger.flush_logs_every_n_steps", str(window),
+        "--trainer.log_every_n_steps", str(window), "--throughput.window",
         str(window), "--trainer.enable_progress_bar", "false", *extra,
     ]  # fmt: skip
 

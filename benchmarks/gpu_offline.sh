@@ -9,11 +9,14 @@
 # installed into a folder of their own (SITE, default /tmp/aesplat-site) without an index or dependency
 # resolution, and the code runs from this tree's src/. The parts (default: tests fit fit-3 fit-4 fit-6 peer,
 # the most wanted first) run one by one in WORK (default /tmp/gpu-throughput), each under its own time limit
-# when LIMITS names one ("tests=150 peer=120", seconds); after each, OUT/reports.tgz is rewritten whole with
+# when LIMITS names one ("tests=150 peer=120", seconds), in a process group of its own that is stopped whole
+# when the part ends or reaches its limit (TERM, then KILL after GRACE seconds, default 15), so that no
+# process of one part holds the GPU in the next; after each, OUT/reports.tgz is rewritten whole with
 # every report, figure file, run log and the versions made so far, and OUT/progress.log holds the output. So
 # a run stopped at any point leaves in OUT all it finished. A part that fails or runs out of time is
 # reported and the next one runs. The exit status is that of the last part that failed (0 if none did).
-# DEVICE=cpu rehearses it on a CPU with CONFIG=conf/smoke.yaml (see gpu_throughput.sh).
+# AESPLAT_COMMIT names the commit of the tree (a copy sent to the machine may carry no git, or a stale one);
+# the figure files record it. DEVICE=cpu rehearses it on a CPU with CONFIG=conf/smoke.yaml (gpu_throughput.sh).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,6 +27,7 @@ PARTS=${*:-tests fit fit-3 fit-4 fit-6 peer}
 SITE=${SITE:-/tmp/aesplat-site}
 WORK=${WORK:-/tmp/gpu-throughput}
 PYTHON=${PYTHON:-python3}
+GRACE=${GRACE:-15}
 export PYTHON PYTHONUNBUFFERED=1
 compgen -G "$WHEELS/*.whl" >/dev/null || { echo "gpu_offline.sh: no wheels in $WHEELS" >&2; exit 2; }
 mkdir -p "$OUT" "$WORK"
@@ -41,14 +45,52 @@ pack() {  # every report, figure file, run log and the versions made so far, rep
         tar -czf "$OUT/reports.tgz.part" --null -T -) && mv "$OUT/reports.tgz.part" "$OUT/reports.tgz"
 }
 
+run_part() {  # run_part LIMIT PART: in a session of its own, so that nothing it started outlives it
+    local limit=$1 part=$2 waited=0
+    # A background job of a script is no process-group leader, so setsid runs it as the leader of a new
+    # session and process group whose id is its pid.
+    setsid bash benchmarks/gpu_throughput.sh "$WORK" "$part" &
+    local pid=$!
+    current=$pid
+    while kill -0 "$pid" 2>/dev/null; do
+        if [[ $limit -gt 0 && $waited -ge $limit ]]; then
+            stop_group "$pid"
+            wait "$pid" 2>/dev/null
+            current=
+            return 124
+        fi
+        sleep 1
+        waited=$((waited + 1))
+    done
+    wait "$pid"
+    local code=$?
+    stop_group "$pid"  # whatever the part left running (a fit that outlived its benchmark holds the GPU)
+    current=
+    return $code
+}
+
+stop_group() {  # TERM to the whole group, KILL to what is left after GRACE seconds
+    kill -TERM -- "-$1" 2>/dev/null || return 0
+    for _ in $(seq "$GRACE"); do
+        kill -0 -- "-$1" 2>/dev/null || return 0
+        sleep 1
+    done
+    kill -KILL -- "-$1" 2>/dev/null || true
+}
+
+current=
+# Stopped itself (a time limit, Ctrl-C): the running part goes whole, and what was finished is packed.
+trap 'trap - TERM INT; echo "gpu_offline.sh: stopped"; [[ -z $current ]] || stop_group "$current"; pack; exit 143' \
+    TERM INT
+
 status=0
 for part in $PARTS; do
     limit=0
     for entry in ${LIMITS:-}; do [[ ${entry%%=*} != "$part" ]] || limit=${entry#*=}; done
     part_start=$(date +%s)
-    timeout --signal=TERM --kill-after=15 "$limit" bash benchmarks/gpu_throughput.sh "$WORK" "$part"
+    run_part "$limit" "$part"
     code=$?
-    if [[ $code -eq 124 || $code -eq 137 ]]; then
+    if [[ $code -eq 124 ]]; then
         echo "gpu_offline.sh: $part stopped at its limit of $limit s"
     elif [[ $code -ne 0 ]]; then
         echo "gpu_offline.sh: $part failed (exit $code)"

@@ -59,3 +59,37 @@ def test_a_part_past_its_limit_is_reported_and_the_next_one_still_packs_its_figu
     assert fit["context_views"] == 2 and fit["figures"]["skipped steps"] == 0
     assert fit["versions"]["device"] == "no CUDA"
     assert "--data.num_context_views" not in fit["command"]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    stat = open(f"/proc/{pid}/stat").read()  # a zombie has ended
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_nothing_a_part_started_outlives_it(tmp_path):
+    """A fit that heeds TERM only at its next step (here: not at all) and outlives the benchmark that started
+    it would hold the GPU in the next part: each part runs in a process group that is stopped whole."""
+    python = tmp_path / "python"
+    python.write_text(f"""#!/usr/bin/env bash
+if [[ "$*" == *fit_throughput.py* ]]; then  # the fit, in the background of its benchmark, deaf to TERM
+    trap '' TERM
+    (trap '' TERM; exec sleep 300 >/dev/null 2>&1) &
+    echo $! >>{tmp_path / "fits"}
+    [[ "$*" == */fit-3\\ * ]] && wait  # fit-3 runs on; fit's benchmark ends at once, leaving its fit behind
+    exit 0
+fi
+exec {sys.executable} "$@"
+""")
+    python.chmod(0o755)
+    wheels, out = _wheel(tmp_path / "wheels"), tmp_path / "out"
+    done = _offline(tmp_path, str(wheels), str(out), "fit", "fit-3", DEVICE="cpu", CONFIG="conf/smoke.yaml",
+                    PYTHON=str(python), LIMITS="fit-3=10", GRACE="1")  # fmt: skip
+    log = (out / "progress.log").read_text()
+    fits = [int(pid) for pid in (tmp_path / "fits").read_text().split()]
+    assert len(fits) == 2, log  # fit ended by itself (its fit left behind), fit-3 stopped at its limit
+    assert "fit-3 stopped at its limit of 10 s" in log and done.returncode == 124
+    assert not any(_alive(pid) for pid in fits), "a part's process outlived it"
