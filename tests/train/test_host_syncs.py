@@ -14,7 +14,7 @@ import torch
 
 from aesplat import cli
 from aesplat.render import interface
-from aesplat.render.gsplat_backend import rasterize_with
+from aesplat.render.gsplat_backend import render_gsplat
 from aesplat.render.settings import RenderSettings
 from aesplat.types import Gaussians
 from tests.helpers import REPO
@@ -96,8 +96,8 @@ def test_the_gsplat_backend_reads_nothing_unless_its_count_is_asked_for():
     intr = torch.tensor([[1.0, 0, 0.5], [0, 1.0, 0.5], [0, 0, 1]]).expand(2, 3, 3, 3)
     counter = HostSyncCounter()
     with counter.count() as syncs:
-        out, stats = rasterize_with(_stand_in_gsplat(calls), g, ext, intr, 8, 6, torch.zeros(2, 3), 1,
-                                    RenderSettings())  # fmt: skip
+        out, stats = render_gsplat(g, ext, intr, 8, 6, torch.zeros(2, 3), 1, RenderSettings(),
+                                   gsplat=_stand_in_gsplat(calls))  # fmt: skip
     assert calls == [(2, 3)] and out.color.shape == (2, 3, 3, 8, 6) and out.alpha.shape == (2, 3, 1, 8, 6)
     assert syncs == []
     with counter.count() as syncs:
@@ -107,7 +107,7 @@ def test_the_gsplat_backend_reads_nothing_unless_its_count_is_asked_for():
 
 def test_a_training_step_with_the_gsplat_backend_never_waits(smoke_shards, tmp_path, monkeypatch):
     calls = []
-    monkeypatch.setitem(interface.BACKENDS, "gsplat", partial(rasterize_with, _stand_in_gsplat(calls)))
+    monkeypatch.setitem(interface.BACKENDS, "gsplat", partial(render_gsplat, gsplat=_stand_in_gsplat(calls)))
     counter = _fit(smoke_shards, tmp_path / "run", "--model.render.backend", "gsplat")
     assert len(calls) >= STEPS, "the stand-in rasterizer was not called"
     _assert_one_read_per_logging_step(counter.steps)  # the rasterizer's reads included

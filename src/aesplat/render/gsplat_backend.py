@@ -79,31 +79,18 @@ def render_gsplat(
     background: Tensor,  # [B, 3]
     sh_degree: int,
     settings: RenderSettings,
+    gsplat=None,  # the module that rasterizes: None = the gsplat package (CUDA only)
 ) -> tuple[RenderOutput, RenderStats]:
-    """gsplat backend of ``render`` (float32 only, CUDA only)."""
-    if not gaussians.means.is_cuda:  # checked first: the fix is the same whether or not gsplat is installed
-        raise ValueError(
-            f"render backend 'gsplat' needs CUDA tensors, got tensors on {gaussians.means.device}; move the "
-            "inputs to the GPU, or use backend='torch' (or 'auto', which picks by the tensors' device)"
-        )
-    return rasterize_with(_import_gsplat(), gaussians, extrinsics, intrinsics, height, width, background,
-                          sh_degree, settings)  # fmt: skip
-
-
-def rasterize_with(
-    gsplat,  # the gsplat module (anything with its ``rasterization``)
-    gaussians: Gaussians,
-    extrinsics: Tensor,  # [B, V, 4, 4]
-    intrinsics: Tensor,  # [B, V, 3, 3] normalised
-    height: int,
-    width: int,
-    background: Tensor,  # [B, 3]
-    sh_degree: int,
-    settings: RenderSettings,
-) -> tuple[RenderOutput, RenderStats]:
-    """The backend past its device check. Reads no device value on the host: the one count it reports is read
-    only when someone asks for it, so a render queues its kernels and returns (a stand-in ``rasterization``
-    lets the CPU tests count such reads)."""
+    """gsplat backend of ``render`` (float32 only). Reads no device value on the host: the one count it reports
+    is read only when someone asks for it, so a render queues its kernels and returns (the CPU tests count such
+    reads with a stand-in module for ``gsplat``)."""
+    if gsplat is None:
+        if not gaussians.means.is_cuda:  # checked first: the fix is the same whether or not gsplat is installed
+            raise ValueError(
+                f"render backend 'gsplat' needs CUDA tensors, got tensors on {gaussians.means.device}; move "
+                "the inputs to the GPU, or use backend='torch' (or 'auto', which picks by the tensors' device)"
+            )
+        gsplat = _import_gsplat()
     b, n = gaussians.means.shape[:2]
     v = extrinsics.shape[1]
     g = gaussians.to(dtype=torch.float32)
