@@ -4,8 +4,8 @@ small-sample statistics of the experiments' tables (the mean and its 95 % Studen
 paired t-test's p-value, Holm's adjustment of a family of p-values).
 
 A file of ``benchmarks/`` imports it by name (``from common import ...``, its folder is on ``sys.path``); a file
-of ``scripts/`` puts ``benchmarks/`` on ``sys.path`` first. Nothing here imports torch: ``provenance()``
-records torch's version only in a process that uses it.
+of ``scripts/`` puts ``benchmarks/`` on ``sys.path`` first. Nothing here imports torch at import time:
+``provenance()`` records torch's version only in a process that uses it, ``versions()`` imports it when called.
 """
 
 from __future__ import annotations
@@ -64,6 +64,23 @@ def provenance(load_start: list[float] | None = None) -> dict:
         load_now = None
     return {"date": datetime.now(timezone.utc).isoformat(timespec="seconds"), **commit, "machine": machine,
             "load": {"start": load_start, "end": load_now}}  # fmt: skip
+
+
+def versions() -> dict[str, str]:
+    """The GPU (or "no CUDA") and the versions of torch, gsplat and Lightning in this environment."""
+    import importlib.metadata
+
+    import torch
+
+    def version(name: str) -> str:
+        try:
+            return importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            return "not installed"
+
+    device = torch.cuda.get_device_name() if torch.cuda.is_available() else "no CUDA"
+    return {"device": device, "torch": torch.__version__, "gsplat": version("gsplat"),
+            "lightning": version("lightning")}  # fmt: skip
 
 
 def write_whole(path: Path, data: bytes) -> None:

@@ -34,7 +34,7 @@ import sys
 from pathlib import Path
 
 import yaml
-from common import AESPLAT, provenance, synthetic_shards, write_whole
+from common import AESPLAT, provenance, synthetic_shards, versions, write_whole
 
 from aesplat.train.loss import vgg16_weights_path
 
@@ -139,23 +139,6 @@ def context_views(config: list[str], extra: list[str]) -> int | list[int]:
         if flag == "--data.num_context_views":
             views = yaml.safe_load(value)
     return views
-
-
-def versions() -> dict[str, str]:
-    """The GPU (or "no CUDA") and the versions of torch, gsplat and Lightning that ran the fit."""
-    import importlib.metadata
-
-    import torch
-
-    def version(name: str) -> str:
-        try:
-            return importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            return "not installed"
-
-    device = torch.cuda.get_device_name() if torch.cuda.is_available() else "no CUDA"
-    return {"device": device, "torch": torch.__version__, "gsplat": version("gsplat"),
-            "lightning": version("lightning")}  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -45,10 +45,10 @@ pack() {  # every report, figure file, run log and the versions made so far, rep
         tar -czf "$OUT/reports.tgz.part" --null -T -) && mv "$OUT/reports.tgz.part" "$OUT/reports.tgz"
 }
 
-run_part() {  # run_part LIMIT PART: in a session of its own, so that nothing it started outlives it
+run_part() {  # run_part LIMIT PART: in a process group of its own, so nothing it started outlives it
     local limit=$1 part=$2 waited=0
-    # A background job of a script is no process-group leader, so setsid runs it as the leader of a new
-    # session and process group whose id is its pid.
+    # A background job of a script leads no process group, so setsid makes it the leader of a new process
+    # group whose id is its pid.
     setsid bash benchmarks/gpu_throughput.sh "$WORK" "$part" &
     local pid=$!
     current=$pid

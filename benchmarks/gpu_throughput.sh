@@ -67,17 +67,14 @@ done
 }
 mkdir -p "$OUT"
 "$PYTHON" - >"$OUT/versions.txt" <<'EOF'
-import importlib.metadata, os, subprocess, torch
-def version(name):
-    try:
-        return importlib.metadata.version(name)
-    except importlib.metadata.PackageNotFoundError:
-        return "not installed"
+import os, subprocess, sys
+sys.path.insert(0, "benchmarks")
+from common import versions
 commit = os.environ.get("AESPLAT_COMMIT") or subprocess.run(  # a copy of the tree names its commit
     ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-device = torch.cuda.get_device_name() if torch.cuda.is_available() else "no CUDA"
-print(f"commit {commit or 'unknown'}; {device}; torch {torch.__version__}; "
-      f"gsplat {version('gsplat')}; lightning {version('lightning')}")
+v = versions()
+print(f"commit {commit or 'unknown'}; {v['device']}; torch {v['torch']}; gsplat {v['gsplat']}; "
+      f"lightning {v['lightning']}")
 EOF
 cat "$OUT/versions.txt"
 
