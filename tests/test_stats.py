@@ -1,14 +1,39 @@
-"""benchmarks/common.py: the 95 % t-interval the experiments' tables report over seeds."""
+"""aesplat.stats (which benchmarks/common.py names for the scripts): the 95 % t-interval the experiments'
+tables report over seeds, and the order-statistic interval of a median that ``aesplat bench`` reports."""
 
 import math
 
 import pytest
+
+from aesplat.stats import interval_contains, mean_difference, median_interval, order_statistic_rank
 
 from .script_loader import load_benchmark
 
 common = load_benchmark("common")
 T95, holm, paired_t_p, t_interval = common.T95, common.holm, common.paired_t_p, common.t_interval
 t_quantile_95, t_two_sided_p = common.t_quantile_95, common.t_two_sided_p
+
+
+def test_median_interval_from_order_statistics():
+    # n = 6: only the smallest and the largest bracket the median with >= 95 % (1 - 2/64 = 96.9 %).
+    assert median_interval([3.0, 1.0, 2.0, 6.0, 5.0, 4.0]) == (3.5, 1.0, 6.0)
+    # n = 9: the 2nd smallest and 2nd largest do (1 - 2 * 10/512 = 96.1 %); the 3rd would not (82 %).
+    assert order_statistic_rank(9) == 2 and median_interval(range(1, 10)) == (5, 2, 8)
+    assert [order_statistic_rank(n) for n in (5, 6, 8, 9, 12, 17)] == [0, 1, 1, 2, 3, 5]
+    median, lo, hi = median_interval([1.0, 2.0, float("nan"), 4.0])  # too few for any 95 % interval
+    assert median == 2.0 and math.isnan(lo) and math.isnan(hi)
+    assert all(math.isnan(v) for v in median_interval([]))
+    assert interval_contains(0.9, 1.1, 1.0) and not interval_contains(1.01, 1.1, 1.0)
+    assert interval_contains(math.nan, 1.1, 1.0) is None
+
+
+def test_mean_difference_is_paired():
+    mean, lo, hi = mean_difference([11.0, 12.0, 14.0], [10.0, 10.0, 10.0])
+    want_mean, half, _ = t_interval([1.0, 2.0, 4.0])
+    assert (mean, lo, hi) == pytest.approx((want_mean, want_mean - half, want_mean + half))
+    assert mean_difference([5.0, 6.0], [4.0, 5.0]) == (1.0, 1.0, 1.0)  # the same change in every pair
+    with pytest.raises(ValueError):
+        mean_difference([1.0], [1.0, 2.0])
 
 
 def test_t_interval_by_hand():
