@@ -103,6 +103,6 @@ if [[ -n $diag_pid ]]; then
     report+=(--posed-initial "$posed/initial/test-latest" --posed-trained "$posed/run/test-latest")
 fi
 # After the diagnostic: the bench times renders, which a fit beside it would slow down.
-stage "aesplat bench" "$AESPLAT" bench --ckpt "$ckpt" --out "$DEMO_DIR/bench" --scenes 2 --repeats 3
+stage "aesplat bench" "$AESPLAT" bench --ckpt "$ckpt" --out "$DEMO_DIR/bench"
 echo "wall clock (whole pipeline),$SECONDS" >>"$times"
 "$PY" scripts/demo_report.py "${report[@]}"

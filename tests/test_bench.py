@@ -10,7 +10,7 @@ import torch
 from PIL import Image
 
 from aesplat.bench.command import main
-from aesplat.bench.report import markdown_tables, write_report
+from aesplat.bench.report import change_cell, markdown_tables, speedup_cell, with_interval, write_report
 from aesplat.bench.run import Bench, Row, contexts_of, resize_views
 from aesplat.bench.sweep import Point, Setting, default_sweep, model_input_sizes
 from aesplat.model import build_model, dataset_cameras
@@ -50,6 +50,11 @@ def scenes() -> list[BatchedExample]:
 
 def test_default_sweep_varies_one_knob_at_a_time_from_the_baseline():
     baseline, points = default_sweep(4, 224, backends=("torch",), tile_sizes=(8, 16), compiled=True)
+    # Knowing the baseline's own count of context views and tile side, those points are the baseline itself.
+    _, known = default_sweep(4, 224, knobs=["context_views", "tile_size"], base_context_views=2,
+                             tile_sizes=(8, 16), base_tile_size=8)  # fmt: skip
+    assert [p.setting == baseline for p in known] == [True, False, False, False, True, False]
+    assert [p.label for p in known] == ["2 views", "3 views", "4 views", "6 views", "tile 8", "tile 16"]
     assert baseline == Setting(backend="torch")
     knobs = list(dict.fromkeys(p.knob for p in points))
     assert knobs == ["sh_degree", "context_views", "input_size", "render_size", "keep_fraction", "min_opacity",
@@ -220,33 +225,87 @@ def test_a_failing_setting_is_reported_not_fatal(model, scenes):
     rows = bench.run(points, base, warmup_runs=0)
     assert "unknown render backend" in rows[0].skipped and math.isnan(rows[0].psnr)
     assert not rows[1].skipped
-    assert "not measured here" in markdown_tables(rows, {})
+    table = markdown_tables(rows, {})
+    assert "Not measured here: nope (ValueError: unknown render backend" in table  # a line, not a table row
+    assert "| nope |" not in table and "| **torch** |" in table
+    with pytest.raises(ValueError, match="the baseline setting cannot run here: .*unknown render backend"):
+        bench.run(points[:1], points[0].setting, warmup_runs=0)
 
 
 # ----------------------------------------------------------------------------------------------- report
 
 
 def fake_rows() -> list[Row]:
-    rows = [Row("sh_degree", f"SH {d}", psnr=20.0 + d, ssim=0.5 + 0.1 * d, forward_ms=10.0, render_ms=5.0 + d,
-                total_ms=15.0 + d, gaussians=100, baseline=d == 2) for d in range(3)]  # fmt: skip
-    rows.append(Row("precision", "fp32", **{k: getattr(rows[2], k) for k in ("psnr", "ssim", "forward_ms",
-                    "render_ms", "total_ms", "gaussians")}, baseline=True))  # fmt: skip
+    """SH 0 measurably faster and worse, SH 1 no measurable difference in either, SH 2 the baseline; precision
+    fp32 the baseline again, bf16 skipped."""
+    timing = dict(forward_ms=10.0, forward_ms_lo=9.0, forward_ms_hi=11.0, render_ms_lo=4.0, total_ms_lo=14.0,
+                  render_ms_hi=9.0, total_ms_hi=19.0, gaussians=100)  # fmt: skip
+    rows = [
+        Row("sh_degree", "SH 0", psnr=20.0, psnr_delta=-2.0, psnr_delta_lo=-2.5, psnr_delta_hi=-1.5, ssim=0.5,
+            ssim_delta=-0.2, ssim_delta_lo=-0.3, ssim_delta_hi=-0.1, render_ms=5.0, total_ms=15.0, speedup=1.13,
+            speedup_lo=1.05, speedup_hi=1.2, **timing),
+        Row("sh_degree", "SH 1", psnr=21.0, psnr_delta=-1.0, psnr_delta_lo=-2.5, psnr_delta_hi=0.5, ssim=0.6,
+            ssim_delta=0.0, ssim_delta_lo=0.0, ssim_delta_hi=0.0, render_ms=6.0, total_ms=16.0, speedup=1.02,
+            speedup_lo=0.97, speedup_hi=1.08, **timing),
+        Row("sh_degree", "SH 2", psnr=22.0, psnr_delta=0.0, psnr_delta_lo=0.0, psnr_delta_hi=0.0, ssim=0.7,
+            ssim_delta=0.0, ssim_delta_lo=0.0, ssim_delta_hi=0.0, render_ms=7.0, total_ms=17.0, speedup=1.0,
+            speedup_lo=1.0, speedup_hi=1.0, baseline=True, **timing),
+    ]  # fmt: skip
+    rows.append(replace(rows[2], knob="precision", label="fp32"))
     rows.append(Row("precision", "bf16", skipped="RuntimeError: no bf16 here"))
     return rows
 
 
 def test_write_report_files(tmp_path):
-    paths = write_report(fake_rows(), tmp_path / "b", {"ckpt": "x.ckpt", "scenes": 3})
+    load = {"load_before": [1.5, 1, 1], "load_after": [2.25, 1, 1], "other_cores": 1.03, "cpu_count": 2,
+            "seconds": 30.0}  # fmt: skip
+    meta = {"ckpt": "x.ckpt", "scenes": 3, "repeats": 9, "round_scenes": 2, "threads": 2, "load": load,
+            "warning": "aesplat bench: warning: other processes kept 1.0 of 2 cores"}  # fmt: skip
+    paths = write_report(fake_rows(), tmp_path / "b", meta)
     with open(paths["bench.csv"]) as f:
         table = list(csv.DictReader(f))
-    assert len(table) == 5 and table[0]["knob"] == "sh_degree" and float(table[1]["psnr"]) == 21.0
+    # The measured rows only, every timing with its interval.
+    assert [r["label"] for r in table] == ["SH 0", "SH 1", "SH 2", "fp32"] and float(table[1]["psnr"]) == 21.0
+    for column in ("forward_ms", "render_ms", "total_ms", "speedup", "psnr_delta", "ssim_delta"):
+        assert {column, f"{column}_lo", f"{column}_hi"} <= set(table[0]), column
+    assert float(table[0]["total_ms_lo"]) == 14.0 and float(table[0]["speedup_hi"]) == 1.2
     md = paths["BENCH.md"].read_text()
     assert "## SH degree at render" in md and "## model precision" in md
-    assert "| SH 0 | 20.00 | -2.00 | 0.5000 | – | 10.0 | 5.0 | 15.0 | 1.13× | 100 |" in md
-    assert "| **SH 2** |" in md and "no bf16 here" in md
+    assert ("| SH 0 | 20.00 | -2.00 (-2.50 to -1.50) | 0.5000 | -0.2000 (-0.3000 to -0.1000) | – "
+            "| 10.0 (9.0–11.0) | 5.0 (4.0–9.0) | 15.0 (14.0–19.0) | 1.13× (1.05–1.20×) "
+            "| 100 |") in md  # fmt: skip
+    assert ("| SH 1 | 21.00 | no measurable difference (-2.50 to +0.50) | 0.6000 | same images | – "
+            "| 10.0 (9.0–11.0) | 6.0 (4.0–9.0) | 16.0 (14.0–19.0) | no measurable difference (0.97–1.08×) "
+            "| 100 |") in md  # fmt: skip
+    assert "| **SH 2** | 22.00 | baseline | 0.7000 | baseline |" in md
+    assert "| bf16 |" not in md and "Not measured here: bf16 (RuntimeError: no bf16 here)." in md
+    assert "load average 1.50 before, 2.25 after; other processes kept 1.03 of 2 cores busy" in md
+    assert "**aesplat bench: warning: other processes kept 1.0 of 2 cores**" in md
+    assert "the median over 9 rounds" in md and "on 2 of the scenes" in md
     assert Image.open(paths["accuracy_vs_time.png"]).size[0] > 500
     saved = json.loads(paths["bench.json"].read_text())
-    assert saved["meta"]["ckpt"] == "x.ckpt" and len(saved["rows"]) == 5
+    assert saved["meta"]["ckpt"] == "x.ckpt" and len(saved["rows"]) == 5 and saved["rows"][4]["skipped"]
+
+
+def test_report_cells_say_which_differences_are_measurable():
+    row = Row("k", "x", speedup=0.8, speedup_lo=0.7, speedup_hi=0.9)
+    assert speedup_cell(row) == "0.80× (0.70–0.90×)"  # measurably slower: a ratio below 1 with its interval
+    assert speedup_cell(replace(row, speedup_hi=1.0)) == "no measurable difference (0.70–1.00×)"
+    assert speedup_cell(replace(row, speedup_lo=math.nan, speedup_hi=math.nan)).startswith("0.80×, untested")
+    assert speedup_cell(replace(row, baseline=True)) == "baseline"
+    change = Row("k", "x", psnr_delta=0.3, psnr_delta_lo=0.1, psnr_delta_hi=0.5)
+    assert change_cell(change, "psnr", 2) == "+0.30 (+0.10 to +0.50)"
+    assert (
+        change_cell(replace(change, psnr_delta_lo=-0.1), "psnr", 2)
+        == "no measurable difference (-0.10 to +0.50)"
+    )
+    assert change_cell(replace(change, psnr_delta_lo=math.nan), "psnr", 2) == "+0.30, untested (one scene)"
+    assert (
+        change_cell(replace(change, psnr_delta_lo=0.3, psnr_delta_hi=0.3), "psnr", 2) == "+0.30 in every scene"
+    )
+    assert (
+        with_interval(21.61, 21.2, 22.04) == "21.6 (21.2–22.0)" and with_interval(3.0, math.nan, 4.0) == "3.0"
+    )
 
 
 # ----------------------------------------------------------------------------------------------- command line

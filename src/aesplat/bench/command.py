@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import inspect
+import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from ..types import BatchedExample, BatchedViews
 from .report import machine_meta, write_report
 from .run import Bench, contexts_of, each_scene, single_scenes
 from .sweep import KNOB_TITLES, default_sweep
+from .timing import LoadWatch, busy_warning
 
 
 def _floats(text: str) -> list[float]:
@@ -46,14 +48,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--image-size", type=int, default=None, help="evaluation image side (default: the "
                         "run's data.image_size)")  # fmt: skip
     parser.add_argument("--scenes", type=int, default=8, help="evaluation scenes measured")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs per scene and setting (median)")
-    parser.add_argument("--warmup", type=int, default=1, help="untimed runs before each setting")
+    parser.add_argument("--repeats", type=int, default=9, help="timing rounds: each times every setting once, "
+                        "interleaved (the median and, from 6 rounds on, its 95 %% interval)")  # fmt: skip
+    parser.add_argument("--round-scenes", type=int, default=2, help="scenes each round times every setting "
+                        "on, the next ones in turn each round")  # fmt: skip
+    parser.add_argument("--warmup", type=int, default=0, help="untimed runs of each setting before the rounds, "
+                        "after the untimed first pass that measures its quality")  # fmt: skip
     parser.add_argument("--process-warmup", type=int, default=5,
                         help="untimed baseline passes before the first measurement")  # fmt: skip
     parser.add_argument("--context-views", type=_ints, default=[2, 3, 4, 6],
                         help="context-view counts fed to the model: each evaluation sample's k-view context, "
                         "the same targets (a count some scene carries no context of, or one the model cannot "
-                        "take, is reported as not measured)")  # fmt: skip
+                        "take, is listed as not measured)")  # fmt: skip
     parser.add_argument("--data-context-views", type=int, default=None,
                         help="context views of every other knob's settings (default: the run's "
                         "data.num_context_views, the lower end of a range)")  # fmt: skip
@@ -143,7 +149,7 @@ def context_views_of(
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``aesplat bench`` (see ``--help``)."""
     from ..checkpoint import load_checkpoint
-    from ..render import get_backend
+    from ..render import RenderSettings, get_backend
 
     args = build_parser().parse_args(argv)
     apply_thread_policy(num_workers=0, override=args.threads)  # the scenes are read in this process
@@ -160,19 +166,26 @@ def main(argv: list[str] | None = None) -> int:
     # The scenes' tensors are float32 on `device`: "auto" picks what a render of them would use.
     auto = get_backend("auto", device)[0]
     backends = args.backends or (["gsplat", "torch"] if auto == "gsplat" else ["torch"])
-    baseline, points = default_sweep(
-        loaded.sh_degree, native, patch=loaded.patch_size, context_views=args.context_views,
-        backends=backends, input_scales=args.input_scales,
-        render_scales=args.render_scales, keep_fractions=args.keep_fractions, min_opacities=args.min_opacities,
-        precisions=args.precisions, tile_sizes=[int(t) for t in args.tile_sizes], compiled=args.compile,
-        knobs=args.knobs,
-    )  # fmt: skip
     render_kwargs = loaded.render_options(device)
     render_kwargs.pop("compile", None)  # compiling is a knob of its own here
-    bench = Bench(loaded.model, scenes, device, repeats=args.repeats, warmup=args.warmup,
+    baseline, points = default_sweep(
+        loaded.sh_degree, native, patch=loaded.patch_size, context_views=args.context_views,
+        base_context_views=scenes[0].context.num_views, backends=backends, input_scales=args.input_scales,
+        render_scales=args.render_scales, keep_fractions=args.keep_fractions, min_opacities=args.min_opacities,
+        precisions=args.precisions, tile_sizes=[int(t) for t in args.tile_sizes],
+        base_tile_size=render_kwargs.get("tile_size", RenderSettings.tile_size), compiled=args.compile,
+        knobs=args.knobs,
+    )  # fmt: skip
+    bench = Bench(loaded.model, scenes, device, repeats=args.repeats, round_scenes=args.round_scenes,
+                  warmup=args.warmup,
                   render_kwargs=render_kwargs, progress=not args.no_progress,
                   cameras=loaded.cameras, contexts=contexts)  # fmt: skip
-    rows = bench.run(points, baseline, warmup_runs=args.process_warmup)
+    watch = LoadWatch()
+    try:
+        rows = bench.run(points, baseline, warmup_runs=args.process_warmup)
+    except ValueError as err:  # the baseline itself cannot run here
+        raise UserError(str(err)) from err
+    load = watch.stop()
     if args.out is not None:
         out = Path(args.out)
     elif loaded.data is not None:
@@ -183,12 +196,16 @@ def main(argv: list[str] | None = None) -> int:
         **machine_meta(device), "ckpt": str(loaded.path), "scenes": len(scenes), "native_size": native,
         "context_views": scenes[0].context.num_views,
         "view_aggregation": loaded.net.get("view_aggregation", "concat"),
-        "repeats": args.repeats, "warmup": args.warmup, "process_warmup": args.process_warmup,
+        "repeats": args.repeats, "round_scenes": bench.round_scenes, "warmup": args.warmup,
+        "process_warmup": args.process_warmup,
         "sh_degree": loaded.sh_degree,
         "model_size": loaded.net.get("size"), "appearance": loaded.net.get("appearance"),
-        "cameras": loaded.cameras,
+        "cameras": loaded.cameras, "load": load,
     }  # fmt: skip
+    meta["warning"] = busy_warning(load, meta["threads"])
     paths = write_report(rows, out, meta)
     print(paths["BENCH.md"].read_text())
+    if meta["warning"]:
+        print(meta["warning"], file=sys.stderr)
     print(f"aesplat bench: wrote {', '.join(str(p) for p in paths.values())}")
     return 0

@@ -1,16 +1,15 @@
-"""Measuring a sweep: the ``Bench`` runner (model forwards shared between settings, renders timed per setting),
-the timing, and the single-scene examples it measures on."""
+"""Measuring a sweep: the ``Bench`` runner (model forwards shared between settings, an untimed first pass of
+every setting for its quality, then interleaved timing rounds) and the single-scene examples it measures on."""
 
 from __future__ import annotations
 
 import itertools
 import math
 import statistics
-import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any
+from functools import partial
 
 import torch
 import torch.nn.functional as F
@@ -20,29 +19,11 @@ from tqdm import tqdm
 from ..export import drop_transparent, keep_most_opaque
 from ..model import forward_batch
 from ..render import render
+from ..stats import mean_difference
 from ..train.metrics import psnr, relative_pose_errors, ssim
 from ..types import BatchedExample, BatchedViews, Gaussians
 from .sweep import Point, Setting
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def time_call(fn: Callable[[], Any], device: torch.device, repeats: int, warmup: int) -> tuple[Any, float]:
-    """Run ``fn`` ``warmup`` times untimed, then ``repeats`` times; returns (last result, median ms)."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    result = None
-    for _ in range(max(1, repeats)):
-        _sync(device)
-        start = time.perf_counter()
-        result = fn()
-        _sync(device)
-        times.append(1000.0 * (time.perf_counter() - start))
-    return result, statistics.median(times)
+from .timing import Estimate, Stopwatch, calls_per_round, interleaved, per_round_totals, speedup
 
 
 def resize_views(views: BatchedViews, size: int | None) -> BatchedViews:
@@ -65,44 +46,85 @@ def select_gaussians(gaussians: Gaussians, setting: Setting) -> Gaussians:
 
 @dataclass
 class Row:
-    """Measured figures of one point, averaged over the scenes."""
+    """Measured figures of one point. Quality: means over the scenes' target images, and the changes from the
+    baseline as means of per-scene differences with 95 % t-intervals (``_lo``/``_hi``). Time: milliseconds per
+    scene, medians over the timing rounds with distribution-free 95 % intervals; ``speedup`` is the median of
+    the per-round ratios baseline / this setting (total ms), with its interval. NaN bounds: too few scenes or
+    rounds for an interval."""
 
     knob: str
     label: str
     psnr: float = math.nan
+    psnr_delta: float = math.nan
+    psnr_delta_lo: float = math.nan
+    psnr_delta_hi: float = math.nan
     ssim: float = math.nan
+    ssim_delta: float = math.nan
+    ssim_delta_lo: float = math.nan
+    ssim_delta_hi: float = math.nan
     rot_err_deg: float = math.nan  # rotation error of the predicted cameras (none with the data set's)
     forward_ms: float = math.nan
+    forward_ms_lo: float = math.nan
+    forward_ms_hi: float = math.nan
     render_ms: float = math.nan
+    render_ms_lo: float = math.nan
+    render_ms_hi: float = math.nan
     total_ms: float = math.nan
+    total_ms_lo: float = math.nan
+    total_ms_hi: float = math.nan
+    speedup: float = math.nan
+    speedup_lo: float = math.nan
+    speedup_hi: float = math.nan
+    render_calls: int = 0  # back-to-back render calls per timing (more for a cheap setting)
     gaussians: float = math.nan  # mean number rendered per scene
     baseline: bool = False
-    skipped: str = ""  # why this point could not be measured here
+    skipped: str = ""  # why this point could not be measured here (then it has no figures)
+    scene_psnr: list[float] = field(default_factory=list)  # per scene, mean over its target images
+    scene_ssim: list[float] = field(default_factory=list)
     setting: dict = field(default_factory=dict)
 
 
 @dataclass
 class _Forward:
-    """Model outputs of one scene at one forward key, with the median forward time."""
+    """Model outputs of one scene at one forward key."""
 
     gaussians: Gaussians
     extrinsics: Tensor  # [1, Vt, 4, 4] target cameras (predicted, or the data set's)
     intrinsics: Tensor  # [1, Vt, 3, 3]
-    ms: float
     rot_err_deg: float  # mean over the views but view 0 (NaN with the data set's cameras)
+
+
+@dataclass
+class _Quality:
+    """What the untimed first pass of a setting found: the images' quality and the cost of one render pass."""
+
+    psnr: list[float]  # per target image, scenes in order
+    scene_psnr: list[float]
+    scene_ssim: list[float]
+    gaussians: float
+    rot_err_deg: float
+    render_first_ms: float  # one untimed pass over the scenes
 
 
 class Bench:
     """Measures points of a sweep on a fixed list of single-scene examples, sharing model forwards.
 
+    Every setting first runs once untimed over the scenes: its images give the quality figures, and the pass
+    warms it up. Then ``repeats`` rounds time every distinct model forward and every setting's render, all
+    interleaved (``aesplat.bench.timing``), the baseline in every round.
+
     model: called as ``model(context_images, target_images)`` (see aesplat.model), in eval mode.
     scenes: BatchedExample with B = 1 each, float images on ``device``, square images of one size.
+    repeats: timing rounds (6 or more give 95 % intervals). round_scenes: scenes each round times every
+        setting on, the next ones in turn each round (all of them once rounds x round_scenes reaches their
+        number). warmup: further untimed runs of each timed task before the rounds.
     contexts: per count of context views k, the k-view context of each scene (``scenes`` order; None for a
         scene whose evaluation sample carries none): the ``context_views`` knob feeds these, so every count
         renders the same target views. A scene's own count needs no entry.
     render_kwargs: keyword arguments of ``render`` every point shares (background, tile_size, ...); a
         setting's own ``render_options`` override them.
     cameras: ``model.cameras`` of the checkpoint (``predicted`` or ``dataset``: see ``forward_batch``).
+    stopwatch: how a timing is taken (default: ``Stopwatch(device)``; a test passes one with a fake clock).
     """
 
     def __init__(
@@ -111,21 +133,30 @@ class Bench:
         scenes: Sequence[BatchedExample],
         device: torch.device,
         *,
-        repeats: int = 3,
-        warmup: int = 1,
+        repeats: int = 9,
+        round_scenes: int = 2,
+        warmup: int = 0,
         render_kwargs: dict | None = None,
         progress: bool = True,
         cameras: str = "predicted",
         contexts: Mapping[int, Sequence[BatchedViews | None]] | None = None,
+        stopwatch: Stopwatch | None = None,
     ) -> None:
         if not scenes:
             raise ValueError("the benchmark needs at least one evaluation scene")
+        if repeats < 1 or round_scenes < 1:
+            raise ValueError(
+                f"repeats (timing rounds) and round_scenes must be >= 1, got {repeats}, {round_scenes}"
+            )
         self.model, self.scenes, self.device = model, list(scenes), device
         self.contexts = dict(contexts or {})
         self.repeats, self.warmup, self.progress, self.cameras = repeats, warmup, progress, cameras
+        self.round_scenes = min(round_scenes, len(self.scenes))
         self.render_kwargs = dict(render_kwargs or {})
         self.native = scenes[0].target.images.shape[-1]
+        self.stopwatch = stopwatch or Stopwatch(device)
         self._forwards: dict[tuple, list[_Forward]] = {}
+        self._forward_first_ms: dict[tuple, float] = {}
 
     def with_context(self, count: int | None) -> list[BatchedExample]:
         """Every scene with ``count`` context views (None: its own); a ValueError when some scene's evaluation
@@ -148,27 +179,32 @@ class Bench:
         """Keyword arguments of ``render`` for ``setting``: the shared ones, its own, its backend."""
         return {**self.render_kwargs, **dict(setting.render_options), "backend": setting.backend}
 
+    def forward_task(self, setting: Setting) -> Callable[[Sequence[int]], list]:
+        """One model forward of each of the scenes a call names (indices) at the forward key of ``setting``;
+        returns their outputs in that order."""
+        if setting.precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be 'fp32' or 'bf16', got {setting.precision!r}")
+        bf16 = setting.precision == "bf16"
+        inputs = [replace(scene, context=resize_views(scene.context, setting.input_size),
+                          target=resize_views(scene.target, setting.input_size))
+                  for scene in self.with_context(setting.context_views)]  # fmt: skip
+
+        def run(indices: Sequence[int]) -> list:
+            with torch.autocast(self.device.type, dtype=torch.bfloat16) if bf16 else nullcontext():
+                return [forward_batch(self.model, inputs[i], self.cameras) for i in indices]
+
+        return run
+
     @torch.no_grad()
     def forward(self, setting: Setting) -> list[_Forward]:
-        """Model outputs (and forward times) of every scene for the forward key of ``setting`` (cached)."""
+        """Model outputs of every scene for the forward key of ``setting`` (computed once, untimed for the
+        figures; the time of that pass decides how many calls one timing makes)."""
         key = setting.forward_key()
         if key in self._forwards:
             return self._forwards[key]
-        if setting.precision not in ("fp32", "bf16"):
-            raise ValueError(f"precision must be 'fp32' or 'bf16', got {setting.precision!r}")
-        autocast = (torch.autocast(self.device.type, dtype=torch.bfloat16) if setting.precision == "bf16"
-                    else nullcontext())  # fmt: skip
+        ms, outputs = self.stopwatch(partial(self.forward_task(setting), range(len(self.scenes))))
         results = []
-        for i, scene in enumerate(self.with_context(setting.context_views)):
-            size = setting.input_size
-            resized = replace(scene, context=resize_views(scene.context, size),
-                              target=resize_views(scene.target, size))  # fmt: skip
-
-            def run(resized: BatchedExample = resized):
-                with autocast:
-                    return forward_batch(self.model, resized, self.cameras)
-
-            out, ms = time_call(run, self.device, self.repeats, self.warmup if i == 0 else 0)
+        for scene, out in zip(self.with_context(setting.context_views), outputs):
             vc = scene.context.num_views
             rot_err = math.nan
             if self.cameras == "predicted":
@@ -179,56 +215,54 @@ class Bench:
                     gaussians=out.gaussians.to(dtype=torch.float32),
                     extrinsics=out.extrinsics[:, vc:].float(),
                     intrinsics=out.intrinsics[:, vc:].float(),
-                    ms=ms,
                     rot_err_deg=rot_err,
                 )
             )
-        self._forwards[key] = results
+        self._forwards[key], self._forward_first_ms[key] = results, ms
         return results
 
+    def render_task(self, setting: Setting) -> Callable[[Sequence[int]], list]:
+        """Rendering the target views of each of the scenes a call names for ``setting``; returns their images
+        and Gaussian counts in that order."""
+        forwards = self.forward(setting)
+        size, options = setting.render_size or self.native, self.render_options(setting)
+
+        def run(indices: Sequence[int]) -> list:
+            out = []
+            for fwd in (forwards[i] for i in indices):
+                gaussians = select_gaussians(fwd.gaussians, setting)
+                image = render(gaussians, fwd.extrinsics, fwd.intrinsics, size, size,
+                               sh_degree=setting.sh_degree, **options)  # fmt: skip
+                out.append((image, gaussians.num_gaussians))
+            return out
+
+        return run
+
     @torch.no_grad()
-    def measure(self, point: Point) -> Row:
-        """PSNR, SSIM and milliseconds of one point; a failing setting becomes a skipped row with the reason."""
-        s = point.setting
-        row = Row(point.knob, point.label, setting=asdict(s))
-        try:
-            forwards = self.forward(s)
-            psnrs, ssims, render_ms, counts = [], [], [], []
-            size, options = s.render_size or self.native, self.render_options(s)
-            for i, (scene, fwd) in enumerate(zip(self.scenes, forwards)):
-
-                def run(fwd: _Forward = fwd):
-                    gaussians = select_gaussians(fwd.gaussians, s)
-                    out = render(gaussians, fwd.extrinsics, fwd.intrinsics, size, size, sh_degree=s.sh_degree,
-                                 **options)  # fmt: skip
-                    return out, gaussians.num_gaussians
-
-                (out, count), ms = time_call(run, self.device, self.repeats, self.warmup if i == 0 else 0)
-                color = out.color[0]  # [Vt, 3, size, size]
-                if size != self.native:
-                    color = F.interpolate(color, size=(self.native,) * 2, mode="bilinear", align_corners=False)
-                target = scene.target.images[0]
-                psnrs += psnr(color, target).tolist()
-                ssims += ssim(color, target).tolist()
-                render_ms.append(ms)
-                counts.append(count)
-        except (RuntimeError, ValueError, TypeError, NotImplementedError, ImportError) as err:
-            row.skipped = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:200]
-            return row
-        row.psnr, row.ssim = statistics.fmean(psnrs), statistics.fmean(ssims)
-        row.rot_err_deg = statistics.fmean(f.rot_err_deg for f in forwards)
-        row.forward_ms = statistics.fmean(f.ms for f in forwards)
-        row.render_ms = statistics.fmean(render_ms)
-        row.total_ms = row.forward_ms + row.render_ms
-        row.gaussians = statistics.fmean(counts)
-        return row
+    def first_pass(self, setting: Setting) -> _Quality:
+        """Render ``setting`` once (untimed for the figures): PSNR and SSIM per image and scene, Gaussians."""
+        forwards = self.forward(setting)
+        ms, outputs = self.stopwatch(partial(self.render_task(setting), range(len(self.scenes))))
+        psnrs, scene_psnr, scene_ssim, counts = [], [], [], []
+        for scene, (out, count) in zip(self.scenes, outputs):
+            color = out.color[0]  # [Vt, 3, size, size]
+            if color.shape[-1] != self.native:
+                color = F.interpolate(color, size=(self.native,) * 2, mode="bilinear", align_corners=False)
+            target = scene.target.images[0]
+            per_image = psnr(color, target).tolist()
+            psnrs += per_image
+            scene_psnr.append(statistics.fmean(per_image))
+            scene_ssim.append(statistics.fmean(ssim(color, target).tolist()))
+            counts.append(count)
+        rot_err = statistics.fmean(f.rot_err_deg for f in forwards)
+        return _Quality(psnrs, scene_psnr, scene_ssim, statistics.fmean(counts), rot_err, ms)
 
     @torch.no_grad()
     def warm_up(self, setting: Setting, runs: int) -> None:
         """Untimed forward + render passes of the first scene before anything is measured.
 
         The first few calls in a process are several times slower on the CPU (allocator and kernel warm-up),
-        longer than one per-setting warm-up run absorbs; without this the first settings measured look slow.
+        longer than one untimed pass per setting absorbs; without this the first settings look slow.
         """
         scene = self.with_context(setting.context_views)[0]
         options = self.render_options(setting)
@@ -238,17 +272,88 @@ class Bench:
             render(out.gaussians, out.extrinsics[:, vc:], out.intrinsics[:, vc:], self.native, self.native,
                    **options)  # fmt: skip
 
+    def round_indices(self, r: int) -> list[int]:
+        """The scenes round ``r`` times: ``round_scenes`` of them, taking turns."""
+        n = len(self.scenes)
+        return [(r * self.round_scenes + i) % n for i in range(self.round_scenes)]
+
+    @torch.no_grad()
     def run(self, points: Sequence[Point], baseline: Setting, warmup_runs: int = 5) -> list[Row]:
-        """Measure every point (after ``warmup_runs`` untimed baseline passes); a setting shared by several
-        series (the baseline) is measured once."""
+        """Measure every point: ``warmup_runs`` untimed baseline passes, the untimed first pass of each distinct
+        setting (a setting shared by several series, like the baseline, runs once), then the interleaved
+        timing rounds. A setting that cannot run here becomes a skipped row with the reason; a ValueError when
+        the baseline cannot."""
         self.warm_up(baseline, warmup_runs)
-        done: dict[Setting, Row] = {}
+        settings = list(dict.fromkeys([baseline, *(p.setting for p in points)]))
+        bar = tqdm(total=len(settings), desc="aesplat bench", unit="pass", disable=not self.progress)
+        quality: dict[Setting, _Quality] = {}
+        skipped: dict[Setting, str] = {}
+        for setting in settings:
+            try:
+                quality[setting] = self.first_pass(setting)
+            except (RuntimeError, ValueError, TypeError, NotImplementedError, ImportError) as err:
+                skipped[setting] = f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"[:200]
+            bar.update(1)
+        if baseline in skipped:
+            bar.close()
+            raise ValueError(f"the baseline setting cannot run here: {skipped[baseline]}")
+
+        tasks: dict[tuple, Callable[[], list]] = {}
+        first_ms: dict[tuple, float] = {}
+        for setting in quality:
+            key = setting.forward_key()
+            if ("forward", key) not in tasks:
+                tasks["forward", key] = self.forward_task(setting)
+                first_ms["forward", key] = self._forward_first_ms[key]
+            tasks["render", setting] = self.render_task(setting)
+            first_ms["render", setting] = quality[setting].render_first_ms
+        share = self.round_scenes / len(self.scenes)  # a timing covers this share of the first pass's scenes
+        calls = {k: calls_per_round(first_ms[k] * share) for k in tasks}
+        bar.reset(total=(self.warmup + self.repeats) * len(tasks))
+        bar.set_description("aesplat bench: timing")
+        for _ in range(self.warmup):
+            for task in tasks.values():
+                task(self.round_indices(0))
+                bar.update(1)
+        samples = interleaved(tasks, self.repeats, self.stopwatch, calls, round_input=self.round_indices,
+                              progress=bar.update)  # fmt: skip
+        bar.close()
+
+        def per_scene(key: tuple) -> list[float]:
+            return [ms / self.round_scenes for ms in samples[key]]
+
+        base_total = per_round_totals(
+            per_scene(("forward", baseline.forward_key())), per_scene(("render", baseline))
+        )
+        base_quality = quality[baseline]
         rows = []
-        for point in tqdm(points, desc="aesplat bench", unit="setting", disable=not self.progress):
-            if point.setting not in done:
-                done[point.setting] = self.measure(point)
-            row = replace(done[point.setting], knob=point.knob, label=point.label)
-            row.baseline = point.setting == baseline
+        for point in points:
+            s = point.setting
+            row = Row(point.knob, point.label, baseline=s == baseline, setting=asdict(s))
+            if s in skipped:
+                row.skipped = skipped[s]
+                rows.append(row)
+                continue
+            q = quality[s]
+            forward, rendered = per_scene(("forward", s.forward_key())), per_scene(("render", s))
+            total = per_round_totals(forward, rendered)
+            row.psnr, row.ssim = statistics.fmean(q.psnr), statistics.fmean(q.scene_ssim)
+            row.scene_psnr, row.scene_ssim = q.scene_psnr, q.scene_ssim
+            row.psnr_delta, row.psnr_delta_lo, row.psnr_delta_hi = mean_difference(
+                q.scene_psnr, base_quality.scene_psnr
+            )
+            row.ssim_delta, row.ssim_delta_lo, row.ssim_delta_hi = mean_difference(
+                q.scene_ssim, base_quality.scene_ssim
+            )
+            row.rot_err_deg, row.gaussians = q.rot_err_deg, q.gaussians
+            for name, values in (("forward_ms", forward), ("render_ms", rendered), ("total_ms", total)):
+                est = Estimate.of(values)
+                setattr(row, name, est.value)
+                setattr(row, f"{name}_lo", est.lo)
+                setattr(row, f"{name}_hi", est.hi)
+            ratio = speedup(base_total, total)
+            row.speedup, row.speedup_lo, row.speedup_hi = ratio.value, ratio.lo, ratio.hi
+            row.render_calls = calls["render", s]
             rows.append(row)
         return rows
 

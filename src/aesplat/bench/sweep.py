@@ -47,6 +47,7 @@ def default_sweep(
     *,
     patch: int = 14,
     context_views: Sequence[int] = (2, 3, 4, 6),
+    base_context_views: int | None = None,
     backends: Sequence[str] = ("torch",),
     input_scales: Sequence[float] = (0.5, 0.75, 1.0),
     render_scales: Sequence[float] = (0.25, 0.5, 0.75, 1.0),
@@ -54,16 +55,18 @@ def default_sweep(
     min_opacities: Sequence[float] = (0.0, 0.05, 0.2, 0.5, 0.8),
     precisions: Sequence[str] = ("fp32", "bf16"),
     tile_sizes: Sequence[int] = (),
+    base_tile_size: int | None = None,
     compiled: bool = False,
     knobs: Iterable[str] | None = None,
 ) -> tuple[Setting, list[Point]]:
     """Every knob swept alone from the baseline ``Setting(backend=backends[0])``; returns (baseline, points).
 
     patch: the model's patch size (input sides are multiples of it).
-    context_views: counts of context views to feed the model; the baseline feeds every one a sample holds,
-    which is the point of the same count.
+    context_views: counts of context views to feed the model; the baseline feeds every one a sample holds
+    (``base_context_views`` when known: that count's point is the baseline itself, not measured again).
 
     tile_sizes: renderer tile sides to try (a speed-only knob: the image does not change); empty = skip.
+    base_tile_size: the tile side the baseline renders with; that point is the baseline itself.
     compiled: add a "torch compiled" backend point (``render(..., compile=True)``).
     knobs: restrict to these knob names (default: all).
     """
@@ -73,10 +76,16 @@ def default_sweep(
     def own(size: int) -> int | None:  # None stands for the data's own side
         return None if size == native_size else size
 
+    def views(count: int) -> int | None:  # None stands for every view a sample holds
+        return None if count == base_context_views else count
+
+    def tile(side: int) -> tuple[tuple[str, Any], ...]:  # () stands for the baseline's own tile side
+        return () if side == base_tile_size else (("tile_size", side),)
+
     series: dict[str, list[Point]] = {
         "sh_degree": [Point("sh_degree", f"SH {d}", replace(base, sh_degree=None if d == sh_degree else d))
                       for d in range(sh_degree + 1)],
-        "context_views": [Point("context_views", f"{c} views", replace(base, context_views=c))
+        "context_views": [Point("context_views", f"{c} views", replace(base, context_views=views(c)))
                           for c in sorted(set(context_views))],
         "input_size": [Point("input_size", f"{s} px", replace(base, input_size=own(s)))
                        for s in model_input_sizes(native_size, input_scales, patch)],
@@ -88,8 +97,8 @@ def default_sweep(
                         for o in sorted(set(min_opacities) | {0.0})],
         "precision": [Point("precision", p, replace(base, precision=p)) for p in precisions],
         "backend": [Point("backend", b, replace(base, backend=b)) for b in backends],
-        "tile_size": [Point("tile_size", f"tile {t}", replace(base, render_options=(("tile_size", t),)))
-                      for t in tile_sizes],
+        "tile_size": [Point("tile_size", f"tile {t}", replace(base, render_options=tile(t)))
+                      for t in sorted(set(tile_sizes))],
     }  # fmt: skip
     if compiled:
         series["backend"].append(
