@@ -25,8 +25,9 @@ two-view ``concat`` head: synthetic scenes, the demo's model and training, on th
    accuracy with ``aesplat test --data.num_context_views k`` (the shards' k-view contexts; PSNR, SSIM,
    rotation and translation-direction errors of the predicted cameras), time with ``aesplat bench --knobs
    context_views --threads 1`` on the same samples (milliseconds per scene of the model forward and of
-   rendering the targets, the median of --repeats runs each). The script checks that every run and count
-   rendered the same target frames of the same scenes (``per_scene.csv``'s ``target_frames``), else stops.
+   rendering the targets, the median of --repeats interleaved rounds). The script checks that every run and
+   count rendered the same target frames of the same scenes (``per_scene.csv``'s ``target_frames``), else
+   stops.
 4. Report, under --out: ``runs.csv`` (one line per run and count), ``results.json`` (per model and count the
    mean and 95 % t-interval over seeds, and the paired per-seed differences of ``summary_rows``; the
    settings, the scenes and their targets; date, commit, machine and load), ``table.md`` and
@@ -483,7 +484,7 @@ def main(argv: list[str] | None = None) -> None:
                    help="range of context views the pool model trains with (default 2 4)")  # fmt: skip
     p.add_argument("--eval-views", type=int, nargs="+", default=[2, 3, 4],
                    help="counts of context views the pool model is evaluated at (default 2 3 4)")  # fmt: skip
-    p.add_argument("--repeats", type=int, default=5, help="timed runs per scene and count (median; default 5)")
+    p.add_argument("--repeats", type=int, default=5, help="aesplat bench's timing rounds (median; default 5)")
     p.add_argument("--report-only", action="store_true", help="only rebuild the report from finished runs")
     p.add_argument("extra", nargs="*", help="after `--`: more `aesplat fit` overrides for every run")
     a = p.parse_args(argv)

@@ -31,6 +31,21 @@ def make_shards(
     return root / "shards"
 
 
+def identity_views(v: int, size: int = IMAGE_SIZE):
+    """A ``BatchedViews`` of one sample: ``v`` random square images, every camera at the origin looking down z
+    (normalised intrinsics, focal 1)."""
+    import torch
+
+    from aesplat.types import BatchedViews
+
+    return BatchedViews(
+        images=torch.rand(1, v, 3, size, size),
+        extrinsics=torch.eye(4).repeat(1, v, 1, 1),
+        intrinsics=torch.tensor([[1.0, 0, 0.5], [0, 1.0, 0.5], [0, 0, 1]]).repeat(1, v, 1, 1),
+        index=torch.arange(v)[None],
+    )
+
+
 def write_tar(path: Path, samples: list[tuple[str, dict[str, bytes]]]) -> None:
     """Write samples [(key, {ext: bytes})] as one shard (see :class:`aesplat.data.tar_files.ShardWriter`)."""
     from aesplat.data.tar_files import ShardWriter

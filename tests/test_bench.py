@@ -17,7 +17,7 @@ from aesplat.model import build_model, dataset_cameras
 from aesplat.render import render
 from aesplat.train.metrics import psnr
 from aesplat.types import BatchedExample, BatchedViews
-from tests.helpers import SH_DEGREE, make_shards, write_tiny_checkpoint
+from tests.helpers import SH_DEGREE, identity_views, make_shards, write_tiny_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
 
@@ -25,12 +25,7 @@ SIZE = 28
 
 
 def views(v: int, size: int = SIZE) -> BatchedViews:
-    return BatchedViews(
-        images=torch.rand(1, v, 3, size, size),
-        extrinsics=torch.eye(4).repeat(1, v, 1, 1),
-        intrinsics=torch.tensor([[1.0, 0, 0.5], [0, 1.0, 0.5], [0, 0, 1]]).repeat(1, v, 1, 1),
-        index=torch.arange(v)[None],
-    )
+    return identity_views(v, size)
 
 
 @pytest.fixture(scope="module")

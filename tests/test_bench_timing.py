@@ -25,11 +25,16 @@ from aesplat.bench.timing import (
     speedup,
 )
 from aesplat.model import build_model
-from aesplat.types import BatchedExample
-from tests.helpers import SH_DEGREE
-from tests.test_bench import SIZE, views
+from aesplat.types import BatchedExample, BatchedViews
+from tests.helpers import SH_DEGREE, identity_views
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
+
+SIZE = 28
+
+
+def views(v: int, size: int = SIZE) -> BatchedViews:
+    return identity_views(v, size)
 
 
 class FakeClock:

@@ -39,6 +39,16 @@ def test_override_beats_environment_and_bad_values_are_named():
         pick_threads(env={"AESPLAT_THREADS": "many"}, affinity=2)
 
 
+def test_cores_other_processes_keep_busy_are_left_to_them():
+    busy = pick_threads(0, env={}, affinity=2, busy_cores=0.74)  # one spinning process beside the bench
+    assert busy.threads == 1 and "1 kept busy by other processes" in busy.reason
+    assert pick_threads(0, env={}, affinity=2, busy_cores=0.3).threads == 2  # less than half a core: ignored
+    assert pick_threads(1, env={}, affinity=2, busy_cores=3.0).threads == 1  # at least one thread
+    assert pick_threads(0, env={}, affinity=16, busy_cores=2.2).threads == 14
+    assert pick_threads(0, override=2, env={}, affinity=2, busy_cores=1.0).threads == 2  # a choice stands
+    assert pick_threads(0, env={"AESPLAT_THREADS": "2"}, affinity=2, busy_cores=1.0).threads == 2
+
+
 def test_processes_of_one_node_share_its_cores_unless_slurm_says_per_task():
     assert usable_cores(env={}, affinity=16, processes=4) == 4
     assert usable_cores(env={}, affinity=2, processes=4) == 1

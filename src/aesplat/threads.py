@@ -16,6 +16,7 @@ all of this. DataLoader worker processes always run one thread (torch sets it in
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from collections.abc import Mapping
@@ -48,11 +49,14 @@ def pick_threads(
     env: Mapping[str, str] | None = None,
     affinity: int | None = None,
     processes: int = 1,
+    busy_cores: float = 0.0,
 ) -> ThreadChoice:
     """The intra-op thread count for a process that feeds ``num_workers`` DataLoader workers.
 
     ``override`` (a command's ``--threads``) beats ``AESPLAT_THREADS`` beats the automatic choice;
-    ``affinity`` (the number of cores in the mask) and ``env`` default to this process's.
+    ``affinity`` (the number of cores in the mask) and ``env`` default to this process's. ``busy_cores``: the
+    cores other processes were seen keeping busy (rounded; the automatic choice leaves them alone, so that no
+    thread of a parallel region waits for a core).
     """
     env = os.environ if env is None else env
     if override is not None:
@@ -65,8 +69,11 @@ def pick_threads(
     if from_env is not None:
         return ThreadChoice(from_env, f"{from_env} (set by {ENV_OVERRIDE})")
     cores = usable_cores(env, affinity, processes)
-    threads = max(1, cores - max(0, num_workers))
+    busy = max(0, math.floor(busy_cores + 0.5))  # half a core or more counts as one
+    threads = max(1, cores - max(0, num_workers) - busy)
     reason = f"{cores} usable cores - {num_workers} data-loader workers"
+    if busy:
+        reason += f" - {busy} kept busy by other processes"
     omp = _positive_int(env, "OMP_NUM_THREADS")
     if omp is not None and omp < threads:
         threads, reason = omp, f"{reason}, capped by OMP_NUM_THREADS={omp}"
@@ -77,7 +84,11 @@ _applied: int | None = None
 
 
 def apply_thread_policy(
-    num_workers: int = 0, override: int | None = None, processes: int = 1, quiet: bool = False
+    num_workers: int = 0,
+    override: int | None = None,
+    processes: int = 1,
+    quiet: bool = False,
+    busy_cores: float = 0.0,
 ) -> int:
     """Pick (``pick_threads``) and set torch's intra- and inter-op thread counts; print the choice once per
     process (again only if it changes). Returns the intra-op count."""
@@ -85,7 +96,7 @@ def apply_thread_policy(
 
     global _applied
     try:
-        choice = pick_threads(num_workers, override, processes=processes)
+        choice = pick_threads(num_workers, override, processes=processes, busy_cores=busy_cores)
     except ValueError as err:  # a user's setting: name it, no traceback
         raise SystemExit(f"aesplat: {err}") from err
     torch.set_num_threads(choice.threads)

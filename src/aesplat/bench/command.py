@@ -18,7 +18,7 @@ from ..types import BatchedExample, BatchedViews
 from .report import machine_meta, write_report
 from .run import Bench, contexts_of, each_scene, single_scenes
 from .sweep import KNOB_TITLES, default_sweep
-from .timing import LoadWatch, busy_warning
+from .timing import LoadWatch, busy_warning, other_cores_busy
 
 
 def _floats(text: str) -> list[float]:
@@ -82,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "torch.compile (cold compiles take minutes)")  # fmt: skip
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:1, ... (auto: cuda if available)")
     parser.add_argument("--threads", type=int, default=None,
-                        help=f"torch CPU threads (default: the usable cores, or ${ENV_OVERRIDE})")  # fmt: skip
+                        help=f"torch CPU threads (default: ${ENV_OVERRIDE}, else the usable cores less those "
+                        "other processes keep busy, watched for half a second at the start)")  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -152,7 +153,10 @@ def main(argv: list[str] | None = None) -> int:
     from ..render import RenderSettings, get_backend
 
     args = build_parser().parse_args(argv)
-    apply_thread_policy(num_workers=0, override=args.threads)  # the scenes are read in this process
+    # The scenes are read in this process. Cores other processes keep busy are left to them: a parallel region
+    # whose threads wait for a core times the other work, not the setting.
+    busy_at_start = other_cores_busy() if args.threads is None else None
+    apply_thread_policy(num_workers=0, override=args.threads, busy_cores=busy_at_start or 0.0)
     device = resolve_device(args.device)
     loaded = load_checkpoint(args.ckpt, device)  # a UserError is one line (aesplat.cli reports it)
     scenes = evaluation_scenes(loaded, args.data_root, args.image_size, args.scenes, device,
@@ -200,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         "process_warmup": args.process_warmup,
         "sh_degree": loaded.sh_degree,
         "model_size": loaded.net.get("size"), "appearance": loaded.net.get("appearance"),
-        "cameras": loaded.cameras, "load": load,
+        "cameras": loaded.cameras, "load": {**load, "other_cores_at_start": busy_at_start},
     }  # fmt: skip
     meta["warning"] = busy_warning(load, meta["threads"])
     paths = write_report(rows, out, meta)

@@ -165,6 +165,13 @@ class LoadWatch:
         }
 
 
+def other_cores_busy(seconds: float = 0.5) -> float | None:
+    """The cores other processes keep busy, watched for ``seconds`` while this one sleeps (None off Linux)."""
+    watch = LoadWatch()
+    time.sleep(seconds)
+    return watch.stop()["other_cores"]
+
+
 def busy_warning(load: Mapping[str, Any], threads: int) -> str | None:
     """One line when other work was heavy enough to widen the intervals, else None."""
     other = load.get("other_cores")
