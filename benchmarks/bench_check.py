@@ -46,17 +46,8 @@ REFERENCE = "289d332"  # the last commit whose bench timed each setting in a blo
 def bench_command(ckpt: Path, out: Path) -> list[str]:
     """`aesplat bench` with its defaults; paths relative to the repository (they show in BENCH.md)."""
     paths = [os.path.relpath(p, REPO) for p in (ckpt, out)]
-    return [
-        sys.executable,
-        "-m",
-        "aesplat.cli",
-        "bench",
-        "--ckpt",
-        paths[0],
-        "--out",
-        paths[1],
-        "--no-progress",
-    ]
+    return [sys.executable, "-m", "aesplat.cli", "bench", "--ckpt", paths[0], "--out", paths[1],
+            "--no-progress"]  # fmt: skip
 
 
 def run_bench(ckpt: Path, out: Path, src: Path) -> dict:
@@ -70,11 +61,9 @@ def run_bench(ckpt: Path, out: Path, src: Path) -> dict:
     seconds = time.perf_counter() - start
     if proc.returncode != 0:
         raise SystemExit(f"bench_check: `aesplat bench` from {src} failed:\n{proc.stderr[-3000:]}")
-    return {
-        "seconds": round(seconds, 2),
-        "load_before": round(before, 2),
-        "load_after": round(os.getloadavg()[0], 2),
-    }
+    load_after = round(os.getloadavg()[0], 2)
+    return {"seconds": round(seconds, 2), "load_before": round(before, 2), "load_after": load_after,
+            "provenance": provenance()}  # fmt: skip
 
 
 def reference_src(work: Path, ref: str) -> Path:
@@ -161,11 +150,16 @@ def markdown(result: dict) -> str:
     worst = [s for s in subsets if s["significantly_slower"]]
     disagree = [a for a in agree if not a["agree"]]
     ratio = quiet["ratio"]
-    prov = result["provenance"]
+    runs = [*busy["runs"].values(), *quiet["runs"]]
+    dates = sorted(r["provenance"]["date"] for r in runs)
+    ours = [*busy["runs"].values(), *(r for r in quiet["runs"] if r["which"] == "this")]
+    commits = sorted({r["provenance"]["commit"] + (" (modified)" if r["provenance"]["modified"] else "")
+                      for r in ours})  # fmt: skip
+    machine = runs[0]["provenance"]["machine"]
     lines = [
-        f"Measured {prov['date']} on commit {prov['commit']}{' (modified)' if prov['modified'] else ''}, "
-        f"{prov['machine']['cpu']}, {prov['machine']['cores']} cores, by `python benchmarks/bench_check.py` "
-        f"on `{result['ckpt']}`.",
+        f"Measured {dates[0]} to {dates[-1]} on commit {', '.join(commits)}, {machine['cpu']}, "
+        f'{machine["cores"]} cores, by `python benchmarks/bench_check.py` on `{result["ckpt"]}`; "quiet" '
+        "means no process of the check's beside the bench (the load averages include the bench's own threads).",
         "",
         "| goal | measured | met |",
         "| --- | --- | --- |",
@@ -180,13 +174,14 @@ def markdown(result: dict) -> str:
         "",
         "Load while the busy runs measured (the bench's own threads excluded):",
         "",
-        "| run | other processes' cores | 1-min load before → after | wall s |",
-        "| --- | ---: | --- | ---: |",
+        "| run | other processes' cores | torch threads of the bench | 1-min load before → after | wall s |",
+        "| --- | ---: | ---: | --- | ---: |",
     ]
     for name in ("busy-1", "busy-2"):
         run = busy["runs"][name]
-        lines.append(f"| {name} | {run['other_cores']:.2f} of {run['cpu_count']} | {run['load_before']:.2f} → "
-                     f"{run['load_after']:.2f} | {run['seconds']:.1f} |")  # fmt: skip
+        cells = [name, f"{run['other_cores']:.2f} of {run['cpu_count']}", str(run["threads"]),
+                 f"{run['load_before']:.2f} → {run['load_after']:.2f}", f"{run['seconds']:.1f}"]  # fmt: skip
+        lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
         "Quiet runs (wall seconds; 1-min load average before each): "
@@ -252,9 +247,10 @@ def main() -> None:
                 spinner.kill()
                 spinner.wait()
             write_whole(folder / "run.json", json.dumps(timing).encode())
-        load = json.loads((folder / "bench.json").read_text())["meta"]["load"]  # the bench's own record
-        busy_runs[name] = {**json.loads((folder / "run.json").read_text()), "other_cores": load["other_cores"],
-                           "cpu_count": load["cpu_count"]}  # fmt: skip
+        meta = json.loads((folder / "bench.json").read_text())["meta"]  # the bench's own record
+        busy_runs[name] = {**json.loads((folder / "run.json").read_text()), "threads": meta["threads"],
+                           "other_cores": meta["load"]["other_cores"],
+                           "cpu_count": meta["load"]["cpu_count"]}  # fmt: skip
     first, second = rows_of(args.work / "busy-1" / "bench.json"), rows_of(args.work / "busy-2" / "bench.json")
     by_run = {"busy-1": subset_check(first), "busy-2": subset_check(second)}
 
@@ -273,7 +269,7 @@ def main() -> None:
     old = statistics.median(r["seconds"] for r in quiet_runs if r["which"] == "reference")
 
     result = {
-        "provenance": provenance(load_start),
+        "provenance": provenance(load_start),  # when the tables were written; each run has its own
         "ckpt": os.path.relpath(args.ckpt, REPO),
         "busy": {
             "runs": busy_runs,

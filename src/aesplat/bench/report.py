@@ -127,33 +127,43 @@ def _extra_warmup(meta: dict) -> str:
     return f" and {extra} more untimed run(s) of each" if extra else ""
 
 
+QUALITY_HEADER = ["| setting | PSNR (dB) | Δ PSNR (dB) | SSIM | Δ SSIM | rot. err (°) | Gaussians |",
+                  "| --- | ---: | ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
+TIME_HEADER = [
+    "| setting | forward ms | render ms | total ms | speed-up |",
+    "| --- | ---: | ---: | ---: | ---: |",
+]
+
+
 def markdown_tables(rows: Sequence[Row], meta: dict) -> str:
-    """One markdown table per knob of the measured points, with the changes against the baseline and their
-    intervals; under each, one line naming the points that could not be measured here and why."""
+    """Per knob of the measured points, a table of quality and one of time (each narrow enough for a page), with
+    the changes against the baseline and their intervals; under them, one line naming the points that could
+    not be measured here and why."""
     base = next((r for r in rows if r.baseline and not r.skipped), None)
     lines = header(meta, base)
     for knob in dict.fromkeys(r.knob for r in rows):
-        lines += [
-            f"## {KNOB_TITLES.get(knob, knob)}",
-            "",
-            "| setting | PSNR (dB) | Δ PSNR (dB) | SSIM | Δ SSIM | rot. err (°) | forward ms | render ms "
-            "| total ms | speed-up | Gaussians |",
-            "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-        ]
-        for r in (r for r in rows if r.knob == knob and not r.skipped):
+        measured = [r for r in rows if r.knob == knob and not r.skipped]
+        quality, time = list(QUALITY_HEADER), list(TIME_HEADER)
+        for r in measured:
             label = f"**{r.label}**" if r.baseline else r.label
             rot = f"{r.rot_err_deg:.2f}" if math.isfinite(r.rot_err_deg) else "–"
             ms = [with_interval(*(getattr(r, f"{name}_ms{end}") for end in ("", "_lo", "_hi")))
                   for name in ("forward", "render", "total")]  # fmt: skip
-            cells = [label, f"{r.psnr:.2f}", change_cell(r, "psnr", 2), f"{r.ssim:.4f}",
-                     change_cell(r, "ssim", 4), rot, *ms, speedup_cell(r), f"{r.gaussians:,.0f}"]  # fmt: skip
-            lines.append("| " + " | ".join(cells) + " |")
+            quality.append(_row([label, f"{r.psnr:.2f}", change_cell(r, "psnr", 2), f"{r.ssim:.4f}",
+                                 change_cell(r, "ssim", 4), rot, f"{r.gaussians:,.0f}"]))  # fmt: skip
+            time.append(_row([label, *ms, speedup_cell(r)]))
+        lines += [f"## {KNOB_TITLES.get(knob, knob)}", ""]
+        if measured:
+            lines += [*quality, "", *time, ""]
         skipped = [r for r in rows if r.knob == knob and r.skipped]
         if skipped:
-            lines += ["", "Not measured here: " + "; ".join(f"{r.label} ({r.skipped})" for r in skipped) + "."]
-        lines.append("")
+            lines += ["Not measured here: " + "; ".join(f"{r.label} ({r.skipped})" for r in skipped) + ".", ""]
     lines.append("Bold: the baseline setting. Plot: `accuracy_vs_time.png`; raw figures: `bench.csv`.")
     return "\n".join(lines) + "\n"
+
+
+def _row(cells: Sequence[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
 
 
 def plot(rows: Sequence[Row], path: Path) -> None:
