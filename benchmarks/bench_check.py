@@ -140,6 +140,32 @@ def agreement(first: dict[tuple[str, str], dict], second: dict[tuple[str, str], 
     return out
 
 
+def baseline_ms(bench_json: Path) -> dict[str, float]:
+    """The baseline row's forward and render milliseconds of a bench.json (either bench's)."""
+    row = next(r for r in json.loads(bench_json.read_text())["rows"] if r["baseline"] and not r["skipped"])
+    return {"forward_ms": row["forward_ms"], "render_ms": row["render_ms"]}
+
+
+def overlap(first: dict[tuple[str, str], dict], second: dict[tuple[str, str], dict]) -> int:
+    """Points (the baseline left out) whose speed-up intervals in the two runs share a value."""
+    keys = [k for k in first if k in second and not first[k]["baseline"]]
+    return sum(max(first[k]["speedup_lo"], second[k]["speedup_lo"]) <= min(first[k]["speedup_hi"],
+               second[k]["speedup_hi"]) for k in keys)  # fmt: skip
+
+
+def between_runs(runs: dict[str, Path]) -> list[dict]:
+    """Every ordered pair of this checkout's runs: how many speed-ups of the second lie in the first's
+    interval (or both read "no measurable difference"), and how many intervals overlap."""
+    rows = {name: rows_of(path) for name, path in runs.items()}
+    out = []
+    for a in rows:
+        for b in (b for b in rows if b != a):
+            agreed = agreement(rows[a], rows[b])
+            out.append({"first": a, "second": b, "inside": sum(x["agree"] for x in agreed),
+                        "overlap": overlap(rows[a], rows[b]), "points": len(agreed)})  # fmt: skip
+    return out
+
+
 # ---------------------------------------------------------------------------------------------------- report
 
 
@@ -200,6 +226,28 @@ def markdown(result: dict) -> str:
             lines.append(
                 f"| {run} | {s['subset'][1]} | {s['of'][1]} | {spans[0]} | {spans[1]} | {s['verdict']}{mark} |"
             )
+    between = result["between_runs"]
+    former, ours = quiet["baseline_ms"]["reference"], quiet["baseline_ms"]["this"]
+    lines += [
+        "",
+        "The baseline's milliseconds per scene in the last quiet run of each bench: the former bench's "
+        f"back-to-back repeats {former['forward_ms']:.1f} forward + {former['render_ms']:.1f} render, "
+        f"interleaved {ours['forward_ms']:.1f} + {ours['render_ms']:.1f}.",
+        "",
+        "Every pair of this checkout's runs (the busy ones and the quiet ones), the first against the second: "
+        "speed-ups of the second inside the first's interval (or both \"no measurable difference\"), and "
+        "intervals that overlap:",
+        "",
+        "| first | second | inside | overlap |",
+        "| --- | --- | ---: | ---: |",
+        *(f"| {x['first']} | {x['second']} | {x['inside']} of {x['points']} | {x['overlap']} of {x['points']} |"
+          for x in between["pairs"]),
+        "",
+        "The baseline's milliseconds per scene in each run (forward + render): "
+        + "; ".join(f"{name} {ms['forward_ms']:.1f} + {ms['render_ms']:.1f}"
+                    for name, ms in between["baseline_ms"].items())
+        + ".",
+    ]  # fmt: skip
     lines += [
         "",
         "Speed-ups of both runs against the baseline (median, 95 % interval):",
@@ -267,6 +315,11 @@ def main() -> None:
             quiet_runs.append({"which": which, **json.loads((folder / "run.json").read_text())})
     new = statistics.median(r["seconds"] for r in quiet_runs if r["which"] == "this")
     old = statistics.median(r["seconds"] for r in quiet_runs if r["which"] == "reference")
+    last = {
+        which: args.work / f"quiet-{which}-{args.pairs - 1}" / "bench.json" for which in ("this", "reference")
+    }
+    ours = {name: args.work / name / "bench.json"
+            for name in ("busy-1", "busy-2", *(f"quiet-this-{i}" for i in range(args.pairs)))}  # fmt: skip
 
     result = {
         "provenance": provenance(load_start),  # when the tables were written; each run has its own
@@ -276,6 +329,10 @@ def main() -> None:
             "subsets": by_run["busy-1"] + by_run["busy-2"],
             "subsets_by_run": by_run,
             "agreement": agreement(first, second),
+        },
+        "between_runs": {
+            "pairs": between_runs(ours),
+            "baseline_ms": {name: baseline_ms(path) for name, path in ours.items()},
         },  # fmt: skip
         "quiet": {
             "reference": args.reference,
@@ -284,7 +341,21 @@ def main() -> None:
             "new_median_s": new,
             "reference_median_s": old,
             "ratio": round(new / old, 3),
-        },  # fmt: skip
+            "baseline_ms": {which: baseline_ms(path) for which, path in last.items()},
+        },
+    }
+    pairs, agreed = result["between_runs"]["pairs"], result["busy"]["agreement"]
+    result["summary"] = {  # what the bench page quotes
+        "subset_pairs": len(result["busy"]["subsets"]),
+        "subset_slower": sum(x["significantly_slower"] for x in result["busy"]["subsets"]),
+        "agree": sum(x["agree"] for x in agreed),
+        "points": len(agreed),
+        "inside_min": min(x["inside"] for x in pairs),
+        "inside_max": max(x["inside"] for x in pairs),
+        "overlap_min": min(x["overlap"] for x in pairs),
+        "overlap_max": max(x["overlap"] for x in pairs),
+        "wall_ratio": result["quiet"]["ratio"],
+        "busy_threads": sorted({r["threads"] for r in busy_runs.values()}),
     }
     args.out.mkdir(parents=True, exist_ok=True)
     write_whole(args.out / "check.json", json.dumps(result, indent=1).encode())
