@@ -167,3 +167,11 @@ def test_load_watch_sees_another_busy_process_and_the_bench_warns():
         line.startswith("aesplat bench: warning: other processes kept") and f"{load['other_cores']:.1f}" in line
     )
     assert "\n" not in line
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_steady_allocator_sets_glibc_malloc_in_its_process():
+    """In a process of its own (the setting stays for the process's life): mallopt accepts both settings."""
+    code = "from aesplat.bench.timing import steady_allocator; print(steady_allocator())"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "glibc malloc with a fixed 32 MiB mmap threshold and no trimming"

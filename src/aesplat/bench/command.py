@@ -18,7 +18,7 @@ from ..types import BatchedExample, BatchedViews
 from .report import machine_meta, write_report
 from .run import Bench, contexts_of, each_scene, single_scenes
 from .sweep import KNOB_TITLES, default_sweep
-from .timing import LoadWatch, busy_warning, other_cores_busy
+from .timing import LoadWatch, busy_warning, other_cores_busy, steady_allocator
 
 
 def _floats(text: str) -> list[float]:
@@ -155,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # The scenes are read in this process. Cores other processes keep busy are left to them: a parallel region
     # whose threads wait for a core times the other work, not the setting.
+    allocator = steady_allocator()  # before the model and the scenes take their memory
     busy_at_start = other_cores_busy() if args.threads is None else None
     apply_thread_policy(num_workers=0, override=args.threads, busy_cores=busy_at_start or 0.0)
     device = resolve_device(args.device)
@@ -205,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
         "sh_degree": loaded.sh_degree,
         "model_size": loaded.net.get("size"), "appearance": loaded.net.get("appearance"),
         "cameras": loaded.cameras, "load": {**load, "other_cores_at_start": busy_at_start},
+        "allocator": allocator,
     }  # fmt: skip
     meta["warning"] = busy_warning(load, meta["threads"])
     paths = write_report(rows, out, meta)

@@ -89,7 +89,8 @@ def method(meta: dict) -> str:
         "is the median of the per-round ratios baseline / setting, each taken within one round); for quality",
         "changes the Student-t interval of the mean per-scene difference from the baseline. An interval",
         'that holds no change reads "no measurable difference".',
-        f"Cameras: {get('cameras', 'predicted')} (`model.cameras`).",
+        f"Memory: {get('allocator', 'the default allocator')}. Cameras: {get('cameras', 'predicted')}",
+        "(`model.cameras`).",
     ])  # fmt: skip
 
 

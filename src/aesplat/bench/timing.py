@@ -11,6 +11,7 @@ median is taken over rounds.
 
 from __future__ import annotations
 
+import ctypes
 import math
 import os
 import time
@@ -28,6 +29,7 @@ K = TypeVar("K", bound=Hashable)
 MIN_TIMED_MS = 20.0  # a cheap setting runs back to back until a timing spans about this long ...
 MAX_CALLS = 16  # ... but at most this many calls per round
 BUSY_CORES = 0.5  # other processes using this many cores on average while timing widen the intervals
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3  # glibc's mallopt parameters (malloc.h)
 
 
 class Stopwatch:
@@ -163,6 +165,22 @@ class LoadWatch:
             "cpu_count": os.cpu_count(),
             "seconds": round(wall, 1),
         }
+
+
+def steady_allocator() -> str:
+    """Keep freed memory in this process (glibc's malloc: a fixed mmap threshold of 32 MiB instead of the
+    adaptive one, and no trimming of the heap), so that a setting's time does not depend on what the allocator
+    happened to hand back to the system before it: with the adaptive defaults, the time of a forward against
+    another differed by several per cent from one process to the next. Returns what was set, in words (the
+    allocator as it was where there is no glibc)."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return "the platform's default"
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    if mallopt(M_MMAP_THRESHOLD, 32 << 20) == 1 and mallopt(M_TRIM_THRESHOLD, 1 << 30) == 1:
+        return "glibc malloc with a fixed 32 MiB mmap threshold and no trimming"
+    return "the platform's default"
 
 
 def other_cores_busy(seconds: float = 0.5) -> float | None:
