@@ -298,7 +298,7 @@ class Bench:
             bar.close()
             raise ValueError(f"the baseline setting cannot run here: {skipped[baseline]}")
 
-        tasks: dict[tuple, Callable[[], list]] = {}
+        tasks: dict[tuple, Callable[[Sequence[int]], list]] = {}
         first_ms: dict[tuple, float] = {}
         for setting in quality:
             key = setting.forward_key()
@@ -326,26 +326,22 @@ class Bench:
             per_scene(("forward", baseline.forward_key())), per_scene(("render", baseline))
         )
         base_quality = quality[baseline]
-        rows = []
-        for point in points:
-            s = point.setting
-            row = Row(point.knob, point.label, baseline=s == baseline, setting=asdict(s))
-            if s in skipped:
-                row.skipped = skipped[s]
-                rows.append(row)
-                continue
+
+        def measured(s: Setting) -> Row:
+            """The figures of a setting that ran (knob and label are each point's own)."""
             q = quality[s]
             forward, rendered = per_scene(("forward", s.forward_key())), per_scene(("render", s))
             total = per_round_totals(forward, rendered)
-            row.psnr, row.ssim = statistics.fmean(q.psnr), statistics.fmean(q.scene_ssim)
-            row.scene_psnr, row.scene_ssim = q.scene_psnr, q.scene_ssim
+            row = Row("", "", psnr=statistics.fmean(q.psnr), ssim=statistics.fmean(q.scene_ssim),
+                      rot_err_deg=q.rot_err_deg, gaussians=q.gaussians, scene_psnr=q.scene_psnr,
+                      scene_ssim=q.scene_ssim, render_calls=calls["render", s], baseline=s == baseline,
+                      setting=asdict(s))  # fmt: skip
             row.psnr_delta, row.psnr_delta_lo, row.psnr_delta_hi = mean_difference(
                 q.scene_psnr, base_quality.scene_psnr
             )
             row.ssim_delta, row.ssim_delta_lo, row.ssim_delta_hi = mean_difference(
                 q.scene_ssim, base_quality.scene_ssim
             )
-            row.rot_err_deg, row.gaussians = q.rot_err_deg, q.gaussians
             for name, values in (("forward_ms", forward), ("render_ms", rendered), ("total_ms", total)):
                 est = Estimate.of(values)
                 setattr(row, name, est.value)
@@ -353,9 +349,12 @@ class Bench:
                 setattr(row, f"{name}_hi", est.hi)
             ratio = speedup(base_total, total)
             row.speedup, row.speedup_lo, row.speedup_hi = ratio.value, ratio.lo, ratio.hi
-            row.render_calls = calls["render", s]
-            rows.append(row)
-        return rows
+            return row
+
+        # A setting shared by several series (the baseline) is one set of figures under each knob's label.
+        rows = {s: measured(s) for s in quality}
+        rows |= {s: Row("", "", skipped=why, setting=asdict(s)) for s, why in skipped.items()}
+        return [replace(rows[p.setting], knob=p.knob, label=p.label) for p in points]
 
 
 def single_scenes(batches: Iterable[BatchedExample], limit: int, device: torch.device) -> list[BatchedExample]:
