@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import os
 import shlex
 import statistics
@@ -72,14 +73,18 @@ def fit_command(config: list[str], shards: Path, gaps: list[int], run_dir: Path,
 
 
 def summarize(metrics_csv: Path) -> dict[str, float | int | str]:
-    """The figures of a run from its metrics.csv: medians over the windows after the first."""
+    """The figures of a run from its metrics.csv: medians over the windows after the first. A run stopped by a
+    signal logs its last window again at the step it stopped, with the same values: that row is not a window."""
     with metrics_csv.open(newline="") as f:
         rows = list(csv.DictReader(f))
+    timing = ("train/sec_per_step", "train/samples_per_sec", "train/peak_memory_gib")
+    windows = [[r.get(k) for k in timing] for r in rows if r.get(timing[0]) not in (None, "")]
+    windows = [[float(v or "nan") for v in w] for i, w in enumerate(windows) if i == 0 or w != windows[i - 1]]
 
     def column(key: str) -> list[float]:
         return [float(r[key]) for r in rows if r.get(key) not in (None, "")]
 
-    seconds, samples = column("train/sec_per_step"), column("train/samples_per_sec")
+    seconds, samples, memory = ([w[i] for w in windows] for i in range(3))
     if len(seconds) < 2:
         raise SystemExit(f"{metrics_csv}: {len(seconds)} throughput window(s); run more steps than 2 windows")
     skipped = column("train/skipped_steps")
@@ -89,7 +94,7 @@ def summarize(metrics_csv: Path) -> dict[str, float | int | str]:
         "seconds per step (min - max)": f"{min(seconds[1:]):.3f} - {max(seconds[1:]):.3f}",
         "samples / s (median)": statistics.median(samples[1:]),
         "first window, s / step (compilation, warm-up)": seconds[0],
-        "peak memory (GiB)": max(column("train/peak_memory_gib") or [float("nan")]),
+        "peak memory (GiB)": max((m for m in memory if not math.isnan(m)), default=float("nan")),
         "skipped steps": int(skipped[-1]) if skipped else "not logged",
     }
 

@@ -98,10 +98,10 @@ def _seeds(pattern: str, step_column: str = "step") -> Callable[[], dict]:
 
 
 def _paper_scale() -> dict:
-    """A computed source: the hours the paper's runs take at the step time measured on one GPU (the
-    `aesplat fit -c conf/re10k.yaml` row of docs/results/gpu-training-step.md), for conf/re10k.yaml's steps
-    and the ablation overlays' (conf/ablation/*.yaml, six rows)."""
-    step = _number(lookup(load("gpu-step"), "[run=aesplat fit -c conf/re10k.yaml].seconds per step"))
+    """A computed source: the hours the paper's runs take at the step time of the last GPU run
+    (`aesplat fit -c conf/re10k.yaml` at 2 context views, docs/results/gpu/summary.json), for conf/re10k.yaml's
+    steps and the ablation overlays' (conf/ablation/*.yaml, six rows)."""
+    step = _number(lookup(_gpu_run(), "by_part.fit.seconds per step (median)"))
     steps = int(lookup(load("re10k-config"), "trainer.max_steps"))
     rows = sorted((REPO / "conf" / "ablation").glob("*.yaml"))
     ablation = {int(lookup(yaml.safe_load(p.read_text()), "trainer.max_steps")) for p in rows}
@@ -112,6 +112,25 @@ def _paper_scale() -> dict:
     return {"step_seconds": step, "steps": steps, "hours": steps * hours, "ablation_steps": ablation_steps,
             "ablation_hours": ablation_steps * hours, "ablation_rows": len(rows),
             "ablation_rows_hours": len(rows) * ablation_steps * hours}  # fmt: skip
+
+
+GPU_STEP_GOAL = 0.25  # the target seconds per `aesplat fit -c conf/re10k.yaml` step on one H100
+
+
+def _gpu_run() -> dict:
+    """A computed source: docs/results/gpu/summary.json (``scripts/gpu_results.py``, the last GPU run) and what
+    the GPU page reads from it: the step at the fewest context views against ``GPU_STEP_GOAL`` (``over_goal``,
+    a fraction), and per further count of views (``more_views``, in the order of ``fits``) what it adds to the
+    step (a fraction) and to the peak memory (GiB)."""
+    run = json.loads((REPO / "docs" / "results" / "gpu" / "summary.json").read_text())
+    if not run["fits"]:
+        return run
+    base, step, memory = run["fits"][0], "seconds per step (median)", "peak memory (GiB)"
+    run["over_goal"] = base[step] / GPU_STEP_GOAL - 1
+    run["goal"] = GPU_STEP_GOAL
+    run["more_views"] = [{"context_views": f["context_views"], "time": f[step] / base[step] - 1,
+                          "memory": f[memory] - base[memory]} for f in run["fits"][1:]]  # fmt: skip
+    return run
 
 
 # Named sources: the files (or computations over files) that pages quote. A page may also name a path.
@@ -127,7 +146,8 @@ SOURCES: dict[str, str | Callable[[], dict]] = {
     # python benchmarks/bench_render.py --repeats 7 --compile --sections reference --json (this file)
     "rasterizer": "docs/results/rasterizer/reference.json",
     "ablation": "docs/results/ablation/table.csv",
-    "gpu-step": "docs/results/gpu-training-step.md",  # the record of the last H100 measurement
+    "gpu-step": "docs/results/gpu-training-step.md",  # the record of the H100 measurement at 4c63102
+    "gpu-run": _gpu_run,  # the last GPU run (scripts/gpu_results.py), with its derived figures
     "paper-scale": _paper_scale,
 }
 

@@ -1,19 +1,23 @@
 #!/usr/bin/env python
 """Keep what a GPU run of benchmarks/gpu_offline.sh returned as the source of the GPU pages' figures.
 
-    python scripts/gpu_results.py OUT/reports.tgz [--into docs/results/gpu]
+    python scripts/gpu_results.py OUT/reports.tgz [--progress OUT/progress.log] [--into docs/results/gpu]
 
-Unpacks the run's reports (each part's .md and .json, the versions, the fits' metrics.csv) into INTO, replacing
-what was there, and writes INTO/summary.json: the GPU and versions, the gpu tests' outcome (counts read from
-pytest's closing line in tests.md), and per fit part (fit, fit-N) its context views and figures, in the order
-of their view counts, with the GPU and versions (the fits' files, else versions.txt) and the commit and date
-(``--commit``, ``--date`` where the files name none or a stale one). docs/results/gpu-training-step.md quotes
-these files (scripts/figures.py checks it).
+Unpacks the run's reports (each part's .md or .log and .json, the versions, the fits' metrics.csv) into INTO,
+replacing what was there, with the run's progress log beside when given, and writes INTO/summary.json: the GPU
+and versions, the gpu tests' outcome (counts read from pytest's closing line in tests.md), per fit part (fit,
+fit-N) its context views and figures in the order of their view counts (from its .json; from its run's
+metrics.csv when the part was stopped before writing one, marked by ``source``), per part whether it finished,
+ran out of GPU memory, or (from the progress log) was stopped at its time limit and after how many seconds,
+with the GPU and versions (the fits' files, else versions.txt) and the commit and date (``--commit``,
+``--date`` where the files name none or a stale one). docs/results/gpu-training-step.md quotes these files
+(scripts/figures.py checks it).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import re
 import shutil
@@ -55,13 +59,57 @@ def versions_line(path: Path) -> dict:
     return out
 
 
-def summarize(folder: Path, commit: str | None = None) -> dict:
-    fits = []
-    for path in sorted(folder.glob("fit*.json")):
-        record = json.loads(path.read_text())
-        fits.append({"part": path.stem, "context_views": record["context_views"], **record["figures"]})
+FIT_PART = re.compile(r"^fit(-(\d+))?$")
+
+
+def part_outcomes(folder: Path, progress: str) -> dict[str, dict]:
+    """Per part that left a file: whether it finished (gpu_throughput.sh renames a part's .log to .md only when
+    it succeeded), whether it ran out of GPU memory, and from gpu_offline.sh's progress log its seconds and
+    whether it was stopped at its time limit or failed."""
+    parts = {}
+    for path in sorted(folder.glob("*.log")) + sorted(folder.glob("*.md")):
+        if path.name == "progress.log":
+            continue
+        text = path.read_text(errors="replace")
+        parts[path.stem] = {"finished": path.suffix == ".md", "out_of_memory": "OutOfMemoryError" in text}
+    for name, seconds in re.findall(r"^== (\S+): (\d+) s;", progress, re.M):
+        parts.setdefault(name, {"finished": False, "out_of_memory": False})["seconds"] = int(seconds)
+    for name, limit in re.findall(r"^gpu_offline\.sh: (\S+) stopped at its limit of (\d+) s", progress, re.M):
+        parts[name]["stopped_at_limit"] = int(limit)
+    for name, code in re.findall(r"^gpu_offline\.sh: (\S+) failed \(exit (\d+)\)", progress, re.M):
+        parts[name]["failed_exit"] = int(code)
+    return parts
+
+
+def fit_figures(folder: Path, part: str) -> dict | None:
+    """A fit part's figures: its .json, else (a part stopped before writing it) its run's metrics.csv when it
+    holds a window after the first, summarized as fit_throughput.py does; None when neither has figures."""
+    if (folder / f"{part}.json").is_file():
+        record = json.loads((folder / f"{part}.json").read_text())
+        return {"part": part, "context_views": record["context_views"], "source": f"{part}.json",
+                **record["figures"]}  # fmt: skip
+    metrics = folder / part / "run" / "metrics.csv"
+    if not metrics.is_file():
+        return None
+    from fit_throughput import summarize as fit_summary
+
+    try:
+        figures = fit_summary(metrics)
+    except SystemExit:  # fewer than two windows: nothing after compilation
+        return None
+    with metrics.open(newline="") as f:
+        views = {int(float(v)) for r in csv.DictReader(f) if (v := r.get("train/context_views"))}
+    number = FIT_PART.match(part).group(2)
+    views = views.pop() if len(views) == 1 else int(number) if number else sorted(views)
+    return {"part": part, "context_views": views, "source": f"{part}/run/metrics.csv", **figures}
+
+
+def summarize(folder: Path, commit: str | None = None, progress: str = "") -> dict:
+    names = {p.stem for p in folder.glob("fit*.*")} | {p.name for p in folder.glob("fit*") if p.is_dir()}
+    fits = [f for f in (fit_figures(folder, n) for n in sorted(names) if FIT_PART.match(n)) if f is not None]
     fits.sort(key=lambda f: (f["context_views"] if isinstance(f["context_views"], int) else 99, f["part"]))
-    first = json.loads((folder / f"{fits[0]['part']}.json").read_text()) if fits else {}
+    recorded = [json.loads((folder / f["source"]).read_text()) for f in fits if f["source"].endswith(".json")]
+    first = recorded[0] if recorded else {}
     line = versions_line(folder / "versions.txt")
     return {
         "versions": first.get("versions") or {k: v for k, v in line.items() if k != "commit"},
@@ -70,6 +118,7 @@ def summarize(folder: Path, commit: str | None = None) -> dict:
         "tests": test_outcome(folder / "tests.md"),
         "fits": fits,
         "by_part": {f["part"]: f for f in fits},
+        "parts": part_outcomes(folder, progress),
     }
 
 
@@ -79,14 +128,20 @@ def main() -> None:
     p.add_argument("--into", type=Path, default=REPO / "docs" / "results" / "gpu")
     p.add_argument("--commit", help="the commit the tree was sent as, where its files name none or a stale one")
     p.add_argument("--date", help="the day of the run (YYYY-MM-DD), where no figure file gives its time")
+    p.add_argument("--progress", type=Path, help="gpu_offline.sh's OUT/progress.log of the run, kept beside")
     args = p.parse_args()
-    if not args.reports.is_file():
-        raise SystemExit(f"gpu_results.py: no such file: {args.reports}")
+    for path in (args.reports, args.progress):
+        if path is not None and not path.is_file():
+            raise SystemExit(f"gpu_results.py: no such file: {path}")
+    progress = args.progress.read_text(errors="replace") if args.progress else ""
+    args.into.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=args.into.parent) as tmp:
         staged = Path(tmp) / "gpu"
         with tarfile.open(args.reports) as tar:
             tar.extractall(staged, filter="data")
-        summary = summarize(staged, args.commit)
+        if args.progress:
+            (staged / "progress.log").write_text(progress)
+        summary = summarize(staged, args.commit, progress)
         summary["date"] = summary["date"] or args.date
         write_whole(staged / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
         if args.into.exists():

@@ -169,6 +169,8 @@ def test_the_fit_part_reads_its_figures_from_the_run_logs(tmp_path):
         {"step": 29, "train/sec_per_step": 0.6, "train/samples_per_sec": 16.0, "train/peak_memory_gib": 2.5},
         {"step": 39, "train/sec_per_step": 0.5, "train/samples_per_sec": 20.0, "train/peak_memory_gib": 2.5},
         {"step": 39, "train/loss": 0.1, "train/skipped_steps": 2},
+        # stopped by a signal at step 40: the last window logged again, the same values, is no fourth window
+        {"step": 40, "train/sec_per_step": 0.5, "train/samples_per_sec": 20.0, "train/peak_memory_gib": 2.5},
     ]
     path = tmp_path / "metrics.csv"
     keys = ["step", "train/sec_per_step", "train/samples_per_sec", "train/peak_memory_gib", "train/loss",
