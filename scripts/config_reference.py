@@ -3,7 +3,7 @@
     python scripts/config_reference.py            # prints the Markdown the docs site shows on configuration.md
 
 The tables are read from the config dataclasses (``model.net``, ``model.loss``, ``model.optim``,
-``model.render``, ``model.eval``, ``wandb``), the render settings (``model.render.options``) and the
+``model.render``, ``model.eval``, ``wandb``, ``distributed``), the render settings (``model.render.options``) and the
 DataModule's arguments (``data``): key, type, default, meaning (the field's comment or docstring line), and the
 value each shipped ``conf/*.yaml`` gives it. The docs build (``scripts/mkdocs_hooks.py``) inserts it, so the
 page cannot drift from the code.
@@ -121,7 +121,7 @@ def _rows_of_signature(func: Any, doc: str) -> list[tuple[str, str, str, str]]:
 def sections() -> list[tuple[str, str, list[tuple[str, str, str, str]]]]:
     """(dotted section, what it is, rows of (key, type, default, meaning)), in the order a config lists them."""
     from aesplat.data import DataModule
-    from aesplat.lightning_cli import WandbConfig
+    from aesplat.lightning_cli import DistributedConfig, WandbConfig
     from aesplat.model import NetOptions
     from aesplat.render import RenderSettings
     from aesplat.train import AESplatModule
@@ -159,6 +159,7 @@ def sections() -> list[tuple[str, str, list[tuple[str, str, str, str]]]]:
         ("model.eval", "what `aesplat test` writes and logs", _rows_of_dataclass(config_class("eval"))),
         ("data", "the DataModule", _rows_of_signature(DataModule.__init__, DataModule.__doc__ or "")),
         ("wandb", "Weights & Biases", _rows_of_dataclass(WandbConfig)),
+        ("distributed", "multi-process (DDP) training", _rows_of_dataclass(DistributedConfig)),
     ]
 
 

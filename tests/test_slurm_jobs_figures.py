@@ -85,11 +85,17 @@ def test_pytest_times_and_a_run_that_did_not_pass(bench, tmp_path):
 
 def test_the_table_has_a_column_per_run_and_says_where_it_was_measured(bench, tmp_path):
     events = bench.parse_log(LOG)
+    # the two-node jobs as the log's one-node ones (same moments), the lost-node jobs with the test's seconds
+    same = {**ROLES, "two-nodes": "1", "two-nodes-preempted": "2", "lost-node-killed": "3",
+            "lost-node-frozen": "4"}  # fmt: skip
     runs = [
         {"run": r, "load": {"start": [1.5 * r, 1, 1], "end": [2.0, 1, 1]}, "tests": {"seconds": 70.0 + r},
-         "jobs": {role: bench.job_times(role, job_id, events[job_id]) for role, job_id in ROLES.items()}}
+         "jobs": {role: bench.job_times(role, job_id, events[job_id]) for role, job_id in same.items()}}
         for r in (1, 2)
     ]  # fmt: skip
+    for r, run in enumerate(runs):
+        run["jobs"]["lost-node-killed"]["after_loss"] = 12.25 + r
+        run["jobs"]["lost-node-frozen"]["after_loss"] = 41.0
     record = {"command": "python scripts/slurm_jobs.py", "date": "2026-11-26T10:00:00+00:00",
               "commit": "abc1234", "modified": False, "runs": runs,
               "machine": {"cpu": "CPU X", "cores": 2, "memory_gib": 24},
@@ -102,6 +108,8 @@ def test_the_table_has_a_column_per_run_and_says_where_it_was_measured(bench, tm
     assert rows[0] == "| job | run 1 (load 1.5 → 2.0) | run 2 (load 3.0 → 2.0) |"
     assert len(rows) == 2 + len(bench.ROWS)
     assert "| 2-task CPU training, 6 steps (uninterrupted) | 8.9 s | 8.9 s |" in rows
-    assert rows[-1] == "| the four tests together (pytest, collection included) | 71.0 s | 72.0 s |"
+    assert rows[-1] == "| the tests together (pytest, collection included) | 71.0 s | 72.0 s |"
+    assert "| node 2 killed before step 4: loss to the job's end | 12.2 s | 13.2 s |" in rows
+    assert "| the two-node job preempted, requeued, resumed | 48.7 s | 48.7 s |" in rows
     held = next(row for row in rows if "cred_expire" in row)
     assert held.endswith("| 32.2 s | 32.2 s |")

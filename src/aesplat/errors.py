@@ -37,6 +37,11 @@ class MissingFileError(UserError, FileNotFoundError):
     """A file or folder the command needs does not exist."""
 
 
+class RanksLost(RuntimeError):
+    """A multi-process run ended because one of its ranks was lost (its node died or stopped answering),
+    stated in one line that names the rank and its node."""
+
+
 class Stopped(BaseException):
     """The command was stopped by a signal; it exits with 128 + ``signum``. A BaseException, like
     KeyboardInterrupt, so that no ``except Exception`` on the way swallows it and cleanups still run."""
@@ -200,7 +205,7 @@ def run_reporting_user_errors(command: str, fn: Callable[[], T]) -> T:
     try:
         with stopping_on_signals():
             return fn()
-    except UserError as err:
+    except (UserError, RanksLost) as err:
         if debug():
             raise
         fail(command, str(err))

@@ -3,11 +3,12 @@
     aesplat fit|validate|test -c conf/FILE.yaml [-c conf/OVERLAY.yaml …] [--dotted.key value …]
 
 The parser is in OmegaConf mode (``${…}`` interpolation inside a file, several ``-c`` files layered left to
-right, ``--print_config`` to see the result). Besides the trainer, the module and the data, it holds four
+right, ``--print_config`` to see the result). Besides the trainer, the module and the data, it holds five
 sections: ``checkpoint`` (best by val/psnr), ``last_checkpoint`` (last.ckpt every N steps and at the end of
-every fit), ``throughput`` and ``wandb``, plus ``threads`` (torch CPU threads; default from ``aesplat.threads``:
-usable cores minus ``data.num_workers``). Everything a run writes goes under ``trainer.default_root_dir`` (the
-run directory): checkpoints/, wandb/, config.yaml; each test / validate writes its config.yaml and results into
+every fit), ``throughput``, ``wandb`` and ``distributed`` (how long DDP ranks wait for each other), plus
+``threads`` (torch CPU threads; default from ``aesplat.threads``: usable cores minus ``data.num_workers``).
+Everything a run writes goes under ``trainer.default_root_dir`` (the run directory): checkpoints/, wandb/,
+config.yaml; each test / validate writes its config.yaml and results into
 a folder of its own, ``test-<UTC time>/`` (under ``model.eval.output_dir`` if set, else the run directory), the
 newest behind the link ``test-latest``: an evaluation never changes the training run's files.
 
@@ -39,18 +40,20 @@ import sys
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
+from datetime import timedelta
 from pathlib import Path
 
 from jsonargparse import ActionYesNo
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI, SaveConfigCallback
 from lightning.pytorch.plugins.io import CheckpointIO
+from lightning.pytorch.strategies import DDPStrategy
 from lightning.pytorch.utilities.exceptions import MisconfigurationException
 
 from aesplat.checkpoint import checked_hparams, checkpoint_sections, read_checkpoint, resolve_ckpt_path
 from aesplat.commands import OneLineParser
 from aesplat.config_checks import check_config
 from aesplat.data import DataModule
-from aesplat.errors import MissingFileError, Stopped, UserError, check_writable, signal_name
+from aesplat.errors import MissingFileError, RanksLost, Stopped, UserError, check_writable, signal_name
 from aesplat.files import check_deletable, remove_partials
 from aesplat.threads import apply_thread_policy
 from aesplat.train import AESplatModule
@@ -72,6 +75,15 @@ class WandbConfig:
     name: str | None = None  # display name; default: the run directory's name
     mode: str = "auto"  # auto (online if reachable, else offline) | online | offline | disabled
     tags: list[str] = field(default_factory=list)  # wandb run tags
+
+
+@dataclass
+class DistributedConfig:
+    """Multi-process (DDP) training: how long the ranks wait for each other."""
+
+    # seconds a collective waits for every rank before the run ends saying which rank was lost (torch's
+    # default is 30 minutes); raise it where a checkpoint save or a rank's first batch takes minutes
+    timeout: float = 300.0
 
 
 class LightningParser(OneLineParser, LightningArgumentParser):
@@ -105,6 +117,7 @@ class SaveRunConfig(SaveConfigCallback):
 class AESplatCLI(LightningCLI):
     # Called when the command fails or stops (a fit that saved no checkpoint takes back its run markers).
     on_failure: list[Callable[[], object]] = []
+    signals: SignalsAtStepBoundary | None = None  # of the command under way: says when a DDP rank was lost
 
     @staticmethod
     def subcommands() -> dict[str, set[str]]:
@@ -132,6 +145,7 @@ class AESplatCLI(LightningCLI):
         )
         parser.add_lightning_class_args(Throughput, "throughput")
         parser.add_class_arguments(WandbConfig, "wandb")
+        parser.add_class_arguments(DistributedConfig, "distributed")
         parser.add_argument(
             "--threads", type=int | None, default=None,
             help="torch CPU threads (default: usable cores minus data-loader workers; see aesplat.threads)",
@@ -266,7 +280,13 @@ class AESplatCLI(LightningCLI):
             trainer = super().instantiate_trainer(**kwargs)
         except MisconfigurationException as err:  # a trainer value Lightning refuses: devices, ...
             raise UserError(f"invalid configuration: trainer: {str(err).strip().splitlines()[0]}") from None
-        self.signals = SignalsAtStepBoundary()  # stop and SLURM requeue between steps only
+        timeout = cfg.distributed.timeout
+        if not timeout > 0:
+            raise UserError(f"--distributed.timeout {timeout:g}: give the seconds DDP ranks wait (more than 0)")
+        if isinstance(trainer.strategy, DDPStrategy):  # its process group is made when the fit starts
+            trainer.strategy._timeout = timedelta(seconds=timeout)
+        # stop and SLURM requeue between steps only; a lost DDP rank named
+        AESplatCLI.signals = self.signals = SignalsAtStepBoundary(timeout=timeout)
         trainer.callbacks += [self.signals, DataRecord()]
         return trainer
 
@@ -479,7 +499,7 @@ def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None
         raise UserError(error)
     for pattern in _EXPECTED_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
-    AESplatCLI.on_failure = []
+    AESplatCLI.on_failure, AESplatCLI.signals = [], None
     try:
         AESplatCLI(
             module_class or AESplatModule,
@@ -491,7 +511,9 @@ def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None
             save_config_kwargs={"overwrite": True},
             auto_configure_optimizers=False,
         )
-    except BaseException:
+    except BaseException as err:
         for cleanup in AESplatCLI.on_failure:
             cleanup()
+        if AESplatCLI.signals is not None and AESplatCLI.signals.lost:
+            raise RanksLost(AESplatCLI.signals.lost) from err
         raise

@@ -60,13 +60,19 @@ def hold_lock(run: Path):
 
 
 class RecordTrainingScenes(Callback):
-    """Write the training samples each rank saw (scene key + context frames) to ``out_dir/rank<r>.json``,
-    with how the rank was launched (cluster environment, parent process, SLURM task id and restart count)."""
+    """Write the training samples each rank saw (scene key + context frames) and the loss of each of its steps
+    to ``out_dir/rank<r>.json``, with how the rank was launched (cluster environment, parent process, SLURM
+    task id, node and restart count)."""
 
     def __init__(self, out_dir: str) -> None:
         self.out_dir = Path(out_dir)
         self.seen: list[list] = []
+        self.losses: list[float] = []
         self.first_step: int | None = None
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx: int) -> None:
+        loss = outputs["loss"] if isinstance(outputs, dict) else outputs
+        self.losses.append(float(loss))
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx: int) -> None:
         if self.first_step is None:
@@ -80,7 +86,9 @@ class RecordTrainingScenes(Callback):
         environment = getattr(trainer.strategy, "cluster_environment", None)
         parent = Path(f"/proc/{os.getppid()}/comm")
         record = {
-            "world_size": trainer.world_size, "seen": self.seen, "first_step": self.first_step,
+            "world_size": trainer.world_size, "seen": self.seen, "losses": self.losses,
+            "first_step": self.first_step, "node": os.environ.get("SLURMD_NODENAME"),
+            "node_rank": trainer.node_rank,
             "cluster_environment": type(environment).__name__,
             "processes_started_outside": getattr(environment, "creates_processes_externally", False),
             "parent_process": parent.read_text().strip() if parent.exists() else None,
@@ -127,6 +135,24 @@ class SignalDuringStep(Callback):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         if batch_idx == self.at and self.again:
             signal.pthread_kill(threading.main_thread().ident, self.signum)
+
+
+class HoldUntilFile(Callback):
+    """Before training step ``at`` (global step), in the first run of a job only, write ``<ready>.rank<r>``
+    (this process's pid, its parent's and its node) and wait until the file ``go`` exists, at most ``timeout``
+    seconds: a test can take a node away while every rank is between steps, then let the others go on."""
+
+    def __init__(self, ready: str, go: str, at: int, timeout: float = 300.0) -> None:
+        self.ready, self.go, self.at, self.timeout = ready, Path(go), at, timeout
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx: int) -> None:
+        if trainer.global_step != self.at or os.environ.get("SLURM_RESTART_COUNT", "0") != "0":
+            return
+        mine = {"pid": os.getpid(), "parent": os.getppid(), "node": os.environ.get("SLURMD_NODENAME")}
+        Path(f"{self.ready}.rank{trainer.global_rank}").write_text(json.dumps(mine))
+        deadline = time.monotonic() + self.timeout
+        while not self.go.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
 
 
 class HoldUntilStopSignal(Callback):

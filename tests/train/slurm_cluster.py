@@ -24,15 +24,21 @@ RECORD_JOBS = os.environ.get("AESPLAT_SLURM_RECORD_JOBS")
 
 def sbatch(env: dict, script: str, options: list[str], args: list[str], log: Path, role: str) -> str:
     """Submit ``slurm/<script>`` from the repository root; returns the job id. ``role``: what the job is
-    for (uninterrupted, preempted, eval, mismatch), recorded with its id when AESPLAT_SLURM_RECORD_JOBS asks."""
+    for (uninterrupted, preempted, two-nodes, ..., eval, mismatch), recorded with its id when
+    AESPLAT_SLURM_RECORD_JOBS asks."""
     command = ["sbatch", "--parsable", f"--output={log}", *options, str(SLURM / script), *args]
     proc = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     job_id = proc.stdout.strip().split(";")[0]
+    record_job(role, job_id=job_id)
+    return job_id
+
+
+def record_job(role: str, **figures) -> None:
+    """Append ``{"role": role, **figures}`` to the AESPLAT_SLURM_RECORD_JOBS file, when it is set."""
     if RECORD_JOBS:
         with open(RECORD_JOBS, "a") as record:
-            record.write(json.dumps({"role": role, "job_id": job_id}) + "\n")
-    return job_id
+            record.write(json.dumps({"role": role, **figures}) + "\n")
 
 
 def job_info(env: dict, job_id: str) -> dict[str, str]:
@@ -52,13 +58,13 @@ def wait_until(condition, what: str, timeout: float = 1200.0, every: float = 0.5
     raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
-def wait_for_end(env: dict, job_id: str, log: Path) -> dict[str, str]:
+def wait_for_end(env: dict, job_id: str, log: Path, timeout: float = 1200.0) -> dict[str, str]:
     def ended():
         info = job_info(env, job_id)
         return info if info["JobState"] in FINAL_STATES else None
 
     try:
-        info = wait_until(ended, f"job {job_id} to end")
+        info = wait_until(ended, f"job {job_id} to end", timeout)
     except AssertionError:
         subprocess.run(["scancel", job_id], env=env)  # do not leave it to hold the node for the next tests
         raise

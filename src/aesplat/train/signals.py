@@ -19,16 +19,33 @@ importing torch already starts one); after every training step the ranks agree w
 pending, and if so all of them let it through at the same point. Lightning's handler then writes the HPC
 checkpoint where ``ModelCheckpoint`` writes ``last.ckpt`` (a state that resumes exactly) and requeues the job,
 and the ranks wait there for SLURM's SIGTERM instead of training steps that the requeued job would repeat.
+
+**Agreement off the device**: under DDP the ranks agree on these flags with one all-reduce per step over a
+CPU process group (gloo; the training group itself when training runs on the CPU), so that the check never
+waits for a GPU: no device tensor is made or read.
+
+**A lost rank** (its node died, its process was killed, or it stopped answering for ``timeout`` seconds, the
+process groups' timeout, set by ``aesplat fit --distributed.timeout``): the collective under way fails on
+the other ranks. Every rank counts up a key of the rendezvous store (served by rank 0's process) every
+second from a thread of its own (:class:`Heartbeat`); a rank whose collective failed reads the counts twice,
+a few seconds apart, and ``lost`` says in one line which ranks, on which nodes, stopped counting (rank 0
+when the store itself is gone); ``aesplat fit`` ends with that line, exit status 1. Nothing is saved then:
+the last checkpoint written before stays as it was.
 """
 
 from __future__ import annotations
 
+import os
+import re
 import signal
+import socket
 import sys
 import threading
 import time
+from datetime import timedelta
 
 import torch
+import torch.distributed as dist
 from lightning.fabric.plugins.environments import SLURMEnvironment
 from lightning.pytorch import Callback, LightningModule, Trainer
 from lightning.pytorch.trainer.states import TrainerFn
@@ -37,6 +54,67 @@ from lightning.pytorch.utilities import rank_zero_info, rank_zero_warn
 from aesplat.errors import Stopped, heeded_signals, in_this_process_only, signal_name
 
 REQUEUE_SIGNAL = signal.SIGUSR1  # Lightning's SLURMEnvironment default; slurm/train.sbatch asks for it
+BEAT_SECONDS = 1.0  # how often each rank counts up its key of the store
+# What a collective that lost a peer raises: torch's distributed errors, and gloo's and NCCL's own words.
+_LOST_PEER = re.compile(r"gloo|nccl|connection (closed|reset|refused)|broken pipe|timed out|timeout", re.I)
+
+
+def node_name() -> str:
+    """The node this process runs on: SLURM's name for it when a SLURM task, else the host name."""
+    return os.environ.get("SLURMD_NODENAME") or socket.gethostname()
+
+
+class Heartbeat:
+    """Under DDP, this rank counts up ``aesplat/beat/<rank>`` in the rendezvous store every ``BEAT_SECONDS``
+    from a daemon thread, whatever the training thread is waiting for; :meth:`silent` names the ranks that
+    stopped counting. The store is a client of the one ``torch.distributed`` made (``MASTER_ADDR``,
+    ``MASTER_PORT``), which lives in rank 0's process."""
+
+    def __init__(self, rank: int, world_size: int) -> None:
+        self.rank, self.world_size = rank, world_size
+        address, port = os.environ["MASTER_ADDR"], int(os.environ["MASTER_PORT"])
+        self.store = dist.TCPStore(address, port, is_master=False, timeout=timedelta(seconds=30))
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name="aesplat-heartbeat", daemon=True)
+        self._thread.start()
+
+    def _beat(self) -> None:
+        store = dist.TCPStore(self.store.host, self.store.port, is_master=False, timeout=timedelta(seconds=30))
+        while not self._done.is_set():
+            try:
+                store.add(f"aesplat/beat/{self.rank}", 1)
+            except (RuntimeError, dist.DistError):  # the store is gone with rank 0: nothing to tell
+                return
+            self._done.wait(BEAT_SECONDS)
+
+    def stop(self) -> None:
+        """Stop counting, and say so in the store (``aesplat/left/<rank>``): a rank that stopped on purpose
+        (its fit ended, or it has named the lost ranks and exits) is not lost."""
+        self._done.set()
+        try:
+            self.store.set(f"aesplat/left/{self.rank}", "1")
+        except (RuntimeError, dist.DistError):
+            pass
+
+    def silent(self) -> list[int]:
+        """The ranks whose count did not move in three beats and that did not stop on purpose (all but this
+        one checked); [0] when the store, in rank 0's process, does not answer."""
+        others = [r for r in range(self.world_size) if r != self.rank]
+        try:
+            before = [self.store.add(f"aesplat/beat/{r}", 0) for r in others]
+            time.sleep(3 * BEAT_SECONDS)
+            after = [self.store.add(f"aesplat/beat/{r}", 0) for r in others]
+            still = [r for r, b, a in zip(others, before, after, strict=True) if a == b]
+            return [r for r in still if not self.store.check([f"aesplat/left/{r}"])]
+        except (RuntimeError, dist.DistError):
+            return [0]
+
+
+def lost_peer(exception: BaseException) -> bool:
+    """Whether an exception is what a collective raises when another rank is gone or does not answer."""
+    if isinstance(exception, dist.DistError):
+        return True
+    return isinstance(exception, RuntimeError) and bool(_LOST_PEER.search(str(exception)))
 
 
 def _held() -> bool:
@@ -49,13 +127,24 @@ class SignalsAtStepBoundary(Callback):
     After the fit, ``stop_signal`` is the stop signal that ended it (None if none) and ``stopped_at`` the
     global step it stopped at.
 
+    Under DDP, after a fit that failed because a rank was lost, ``lost`` is the line saying which (None
+    otherwise).
+
     Args:
         wait_for_kill: seconds to wait for SLURM's SIGTERM after the requeue before training on (a requeue
             that failed: Lightning has logged why).
+        timeout: seconds the CPU process group's collectives wait for every rank (the training group's
+            timeout is the same setting, ``--distributed.timeout``).
     """
 
-    def __init__(self, wait_for_kill: float = 120.0) -> None:
+    def __init__(self, wait_for_kill: float = 120.0, timeout: float = 300.0) -> None:
         self.wait_for_kill = wait_for_kill
+        self.timeout = timeout
+        self.lost: str | None = None
+        self.nodes: list[str] = []  # of every rank, under DDP
+        self._group: dist.ProcessGroup | None = None  # the CPU group of the flags (None: the default one)
+        self._distributed = False
+        self._heartbeat: Heartbeat | None = None
         self.requeue_active = False
         self.requeued = False
         self.stop_signal: int | None = None
@@ -79,6 +168,14 @@ class SignalsAtStepBoundary(Callback):
             signal.pthread_sigmask(signal.SIG_UNBLOCK, {REQUEUE_SIGNAL})
 
     def on_train_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        if trainer.world_size > 1 and dist.is_available() and dist.is_initialized():
+            self._distributed = True
+            if dist.get_backend() != "gloo":  # every rank makes it, in the same order
+                self._group = dist.new_group(backend="gloo", timeout=timedelta(seconds=self.timeout))
+            self.nodes = [""] * dist.get_world_size()
+            dist.all_gather_object(self.nodes, node_name(), group=self._group)
+            if self._heartbeat is None and "MASTER_ADDR" in os.environ and "MASTER_PORT" in os.environ:
+                self._heartbeat = Heartbeat(dist.get_rank(), dist.get_world_size())
         if threading.current_thread() is not threading.main_thread():
             return
         launcher = trainer.strategy.launcher
@@ -88,9 +185,32 @@ class SignalsAtStepBoundary(Callback):
 
     def on_train_end(self, trainer: Trainer, pl_module: LightningModule) -> None:
         self._restore()
+        if self._heartbeat is not None:
+            self._heartbeat.stop()
 
     def on_exception(self, trainer: Trainer, pl_module: LightningModule, exception: BaseException) -> None:
         self._restore()
+        if self._distributed and lost_peer(exception):
+            self.lost = self._find_lost(trainer, exception)
+
+    def _find_lost(self, trainer: Trainer, exception: BaseException) -> str:
+        """The line that says which ranks were lost: those whose heartbeat stopped (empty when none did, or
+        there is no heartbeat to read)."""
+        if self._heartbeat is None:
+            return ""
+        lost = self._heartbeat.silent()  # this rank beats on meanwhile: another may be asking too
+        self._heartbeat.stop()
+        if not lost:  # everyone is alive: the failure was not a lost rank
+            return ""
+        rank, size = dist.get_rank(), dist.get_world_size()
+        ranks = ", ".join(f"{r} (node {self.nodes[r]})" if r < len(self.nodes) else str(r) for r in lost)
+        what = "rank" if len(lost) == 1 else "ranks"
+        folders = sorted({str(c.dirpath) for c in trainer.checkpoint_callbacks if getattr(c, "dirpath", None)})
+        where = f"the checkpoints in {', '.join(folders)}" if folders else "the checkpoints"
+        seen = (str(exception).strip().splitlines() or [type(exception).__name__])[0][:120]
+        return (f"{what} {ranks} of {size} lost at step {trainer.global_step} (rank {rank} saw: {seen}); "
+                f"nothing was saved after it, {where} are as the last save left them: resume with --ckpt_path "
+                "last")  # fmt: skip
 
     def _restore(self) -> None:
         for s, handler in self._previous.items():
@@ -106,14 +226,14 @@ class SignalsAtStepBoundary(Callback):
 
     # ----------------------------------------------------------------------------------------- step boundary
     def _agree(self, trainer: Trainer, pl_module: LightningModule, requeue: bool) -> tuple[bool, int]:
-        """(any rank has the requeue signal pending, the stop signal any rank received or 0). One all-reduce
-        under DDP; nothing leaves the host otherwise."""
+        """(any rank has the requeue signal pending, the stop signal any rank received or 0). Under DDP one
+        all-reduce of host tensors over the CPU group, which waits for no device; nothing otherwise."""
         pending = requeue and REQUEUE_SIGNAL in signal.sigpending()
         stop = self.stop_signal or 0
-        if trainer.world_size > 1:
-            flags = torch.tensor([float(pending), float(stop)], device=pl_module.device)
-            flags = trainer.strategy.reduce(flags, reduce_op="max")
-            return bool(flags[0].item()), int(flags[1].item())
+        if self._distributed:
+            flags = torch.tensor([int(pending), stop], dtype=torch.int64)
+            dist.all_reduce(flags, op=dist.ReduceOp.MAX, group=self._group)
+            return bool(flags[0]), int(flags[1])
         return pending, stop
 
     def on_train_batch_end(self, trainer: Trainer, pl_module: LightningModule, outputs, batch, batch_idx: int):
