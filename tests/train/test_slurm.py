@@ -91,6 +91,22 @@ def test_train_launch_matches_lightning_slurm_environment(tmp_path, monkeypatch)
     assert env.main_address == "gpu01"
 
 
+def test_a_network_interface_names_the_rendezvous_address_and_the_sockets(tmp_path):
+    (tmp_path / "lo").mkdir()
+    # a MASTER_ADDR left in the submitting shell is replaced
+    interface = {"AESPLAT_NET_IFACE": "lo", "MASTER_ADDR": "gpu09"}
+    proc, _ = launch(tmp_path / "lo", "train.sbatch", [], **SLURM_ENV, **interface)
+    assert proc.returncode == 0, proc.stderr
+    lines = (tmp_path / "lo" / "srun_args.env").read_text().splitlines()
+    env = dict(line.split("=", 1) for line in lines if "=" in line)
+    keys = ("MASTER_ADDR", "NCCL_SOCKET_IFNAME", "GLOO_SOCKET_IFNAME")
+    assert [env[k] for k in keys] == ["127.0.0.1", "lo", "lo"]
+    (tmp_path / "none").mkdir()
+    proc, argv = launch(tmp_path / "none", "train.sbatch", [], **SLURM_ENV, AESPLAT_NET_IFACE="nosuch0")
+    assert proc.returncode == 2 and argv == []
+    assert proc.stderr.strip().startswith("error: AESPLAT_NET_IFACE=nosuch0: no IPv4 address on that interface")
+
+
 def test_train_launch_defaults_to_re10k(tmp_path):
     proc, argv = launch(tmp_path, "train.sbatch", [], **SLURM_ENV)
     assert proc.returncode == 0, proc.stderr
