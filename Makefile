@@ -57,8 +57,8 @@ test-gpu: $(STAMP)
 	$(PIP) install --quiet -e ".[dev,cuda]"
 	$(PY) -m pytest -q -rs -m gpu
 
-# `make test-slurm`: the `slurm` tests (sbatch jobs, preemption and requeue included) on a one-node SLURM cluster
-# on this machine (slurm/local_cluster.sh; as root it installs the packages when missing). A cluster that was
+# `make test-slurm`: the `slurm` tests (sbatch jobs, preemption, requeue and a lost node included) on a two-node SLURM
+# cluster on this machine (slurm/local_cluster.sh; as root it installs the packages when missing). A cluster that was
 # already running is used and left running; one started here is stopped afterwards.
 test-slurm: $(STAMP)
 	@if slurm/local_cluster.sh status >/dev/null; then started=0; else slurm/local_cluster.sh start && started=1; fi; \
