@@ -52,7 +52,8 @@ EVENTS = {
     "start": re.compile(r"(?:sched: Allocate|_start_job: Started) JobId=(\d+)\b"),
     "signal": re.compile(r"REQUEST_KILL_JOB JobId=(\d+)\b"),  # `scancel --signal=USR1`
     "requeue": re.compile(r"Requeuing JobId=(\d+)\b"),
-    "end": re.compile(r"_job_complete: JobId=(\d+) done"),
+    # a job ends done, or killed with a node that stopped answering (NODE_FAIL)
+    "end": re.compile(r"(?:_job_complete: JobId=(\d+) done|Killing JobId=(\d+) on failed node)"),
 }
 LINE = re.compile(r"^\[(\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d(?:\.\d+)?)\] (.*)$")
 SUMMARY = re.compile(r"\bpassed\b.* in ([\d.]+)s\b")  # pytest's last line: "4 passed in 64.58s (0:01:04)"
@@ -91,7 +92,8 @@ def parse_log(text: str) -> dict[str, JobEvents]:
             found = pattern.search(message)
             if found:
                 when = datetime.fromisoformat(stamp).timestamp()
-                jobs.setdefault(found.group(1), JobEvents()).times[name].append(when)
+                job_id = next(g for g in found.groups() if g)
+                jobs.setdefault(job_id, JobEvents()).times[name].append(when)
     return jobs
 
 

@@ -53,6 +53,17 @@ def test_job_times_come_from_the_log(bench):
     assert preempted["queued"] + sum(preempted["phases"].values()) == pytest.approx(preempted["seconds"])
 
 
+def test_a_job_killed_with_a_failed_node_ends_there(bench):
+    log = LOG + (
+        "[2026-11-26T09:43:00.000] _slurm_rpc_submit_batch_job: JobId=5 InitPrio=4294901755 usec=300\n"
+        "[2026-11-26T09:43:00.500] sched: Allocate JobId=5 NodeList=vm-[1-2] #CPUs=2 Partition=local\n"
+        "[2026-11-26T09:43:51.250] Killing JobId=5 on failed node vm-2\n"
+        "[2026-11-26T09:43:51.250] error: Nodes vm-2 not responding, setting DOWN\n"
+    )
+    times = bench.job_times("lost-node-killed", "5", bench.parse_log(log)["5"])
+    assert times["seconds"] == pytest.approx(51.25)
+
+
 def test_a_job_whose_moments_the_log_lacks_is_an_error(bench):
     events = bench.parse_log("\n".join(line for line in LOG.splitlines() if "Requeuing" not in line))
     with pytest.raises(bench.MeasureError, match="requeued 0 times"):
