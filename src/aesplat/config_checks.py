@@ -149,6 +149,7 @@ def check_config(command: str, cfg: Any) -> None:
     """Check the values of a parsed ``aesplat fit|validate|test`` configuration (the subcommand's Namespace);
     UserError "invalid configuration: KEY = VALUE: it must be ..." for the first one out of range."""
     from .data.datamodule import RANGES
+    from .data.remote import DOWNLOAD_RANGES
     from .model import APPEARANCE_MODES, SIZES, NetConfig
     from .render import RasterizerConfig
     from .train.evaluation import EvalConfig
@@ -174,6 +175,7 @@ def check_config(command: str, cfg: Any) -> None:
     # The data module's ranges (checked again when it is built): here before anything is written.
     data_rules = [Rule(f"data.{name}", at_least_one if lowest == 1 else at_least_zero, must, optional=optional)
                   for name, (lowest, must, optional) in RANGES.items()]  # fmt: skip
+    data_rules += [Rule(f"data.{name}", test, must) for name, (test, must) in DOWNLOAD_RANGES.items()]
     first = next(i for i, rule in enumerate(RULES) if rule.key.startswith("data."))
     for rule in (*RULES[:first], *data_rules, *RULES[first:]):
         if command not in rule.commands:

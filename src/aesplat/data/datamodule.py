@@ -25,7 +25,10 @@ from ..errors import UserError, ignore_stop_signals_in_worker, stop_signals_bloc
 from ..types import StepTracker
 from .curriculum import GapCurriculum
 from .decode import StreamConfig
-from .manifest import SceneRef, SplitRecord, find_shards, has_split, partition, read_manifest, training_scenes
+from .manifest import SceneRef, SplitRecord, partition, read_manifest, training_scenes
+from .manifest import find_shards as find_listed_shards
+from .manifest import has_split as split_listed
+from .remote import DownloadSettings, RemoteShards, is_url, manifest_folder
 from .sampler import ContextCount, ViewSampler
 from .stream import COUNTERS, EvalStream, TrainStream, new_counters
 
@@ -58,7 +61,9 @@ class DataModule(L.LightningDataModule):
     docs/validation.md).
 
     Args:
-        root: shard folder holding ``train/``, ``validation/`` and ``test/`` (and ``manifest.json``).
+        root: shard folder holding ``train/``, ``validation/`` and ``test/`` (and ``manifest.json``), or its
+            http(s) URL: shards fetched into ``cache_dir`` as the streams read them (docs/data.md, "Data on a
+            server"; credentials from the environment only).
         image_size: square side fed to the model (shard images of another size are resized; use a multiple
             of 14 for the ViT patch size).
         batch_size / eval_batch_size: samples per training / evaluation batch (per rank).
@@ -88,6 +93,12 @@ class DataModule(L.LightningDataModule):
         shuffle_buffer: examples held per worker for shuffling (each holds its scene's small members; frames are
             read from the shard when picked).
         seed: base seed of the training streams (and of the fixed pools).
+        cache_dir: where shards fetched from a URL ``root`` are kept, verified, for later runs (None:
+            ``$TMPDIR/aesplat-shards/<hash of the URL>``, or under /tmp); nothing is evicted.
+        download_retries: further tries of a download that failed in a way another try may mend (a cut
+            connection, a timeout, HTTP 5xx or 429); a cut download resumes where it stopped.
+        download_timeout: seconds to connect, and at most between two pieces of data, before a try fails.
+        download_backoff: seconds before the first retry, doubling with each further one.
     """
 
     def __init__(
@@ -114,6 +125,10 @@ class DataModule(L.LightningDataModule):
         eval_transfer_scale: int = 1,
         shuffle_buffer: int = 64,
         seed: int = 0,
+        cache_dir: str | None = None,
+        download_retries: int = 5,
+        download_timeout: float = 60.0,
+        download_backoff: float = 1.0,
     ) -> None:
         super().__init__()
         settings = {"image_size": image_size, "batch_size": batch_size, "eval_batch_size": eval_batch_size,
@@ -140,7 +155,13 @@ class DataModule(L.LightningDataModule):
         self.test_split = test_split
         self.num_context_views = num_context_views  # as given: what the model checks its head against
         self.eval_transfer_scale = eval_transfer_scale
-        self.root = Path(root)
+        self.remote = None
+        if is_url(str(root)):
+            settings = DownloadSettings(download_retries, download_timeout, download_backoff)
+            self.remote = RemoteShards(str(root), cache_dir, settings)
+        # A URL stays a string (the name messages give); its shards are read from a local cache.
+        self.root: str | Path = self.remote.url if self.remote else Path(root)
+        self._shard_folder: Path | None = None if self.remote else Path(root)
         self.image_size = image_size
         self.batch_size = batch_size
         self.eval_batch_size = eval_batch_size
@@ -199,12 +220,21 @@ class DataModule(L.LightningDataModule):
 
     # ------------------------------------------------------------------------------------------- loaders
 
+    def shard_folder(self) -> Path:
+        """The folder the shards are read from: ``root``, or for a URL its cache, where this process fetches
+        the manifest the first time it is asked."""
+        if self._shard_folder is None:
+            self._shard_folder = self.remote.open()
+        return self._shard_folder
+
     def has_split(self, split: str) -> bool:
         """Whether the shards hold ``split`` (see :func:`has_split`)."""
+        self.shard_folder()
         return has_split(self.root, split)
 
     def validation_split(self) -> str:
         """The split validation runs on (:func:`validation_split`); on the test split, every call logs it."""
+        self.shard_folder()
         split = validation_split(self.root, self.validate_on_test)
         if split == "test":
             log.warning(
@@ -253,7 +283,7 @@ class DataModule(L.LightningDataModule):
     def train_dataset(self) -> TrainStream:
         """The training stream of this rank, after checking (one line each) that the shards hold whole scenes,
         that every rank gets scenes of its own and that some of them give examples all along the curriculum."""
-        scenes = training_scenes(self.root)
+        scenes = training_scenes(self.shard_folder(), fetched_later=self.remote is not None)
         mine = partition(sorted(scenes, key=lambda s: (s.shard, s.key)), self.rank, self.world_size)
         if not mine:
             raise UserError(
@@ -265,7 +295,12 @@ class DataModule(L.LightningDataModule):
         self._check_usable(mine, sampler)
         return TrainStream(mine, self._config(True), sampler, self.rank, self.world_size,
                            self._counters["train"], self.step_tracker, self.curriculum, self.epoch_length(),
-                           seed=self.seed, shuffle_buffer=self.shuffle_buffer)  # fmt: skip
+                           seed=self.seed, shuffle_buffer=self.shuffle_buffer, fetch=self._fetch())  # fmt: skip
+
+    def _fetch(self):
+        """What the streams call on a shard path before they open it: None for a folder, else the download of
+        that shard into the cache (in the process that reads it: a DataLoader worker)."""
+        return None if self.remote is None else self.remote.fetch
 
     def _check_usable(self, scenes: list[SceneRef], sampler: ViewSampler) -> None:
         """Refuse a run in which, at some step of the curriculum (checked at 17 points of the warm-up), none of
@@ -290,8 +325,8 @@ class DataModule(L.LightningDataModule):
         split (``validation_split``)."""
         counters = self._counters["test" if split == "test" else "val"]
         folder = self.test_split if split == "test" else self.validation_split()
-        shards = find_shards(self.root, folder)
-        manifest = read_manifest(self.root)
+        shards = find_listed_shards(self.shard_folder(), folder, fetched_later=self.remote is not None)
+        manifest = read_manifest(self.shard_folder())
         if manifest is not None and manifest.size is not None and manifest.size != self.image_size:
             log.info("shards are %dpx, resizing to image_size=%d while loading", manifest.size, self.image_size)
         large = self.image_size * self.eval_transfer_scale
@@ -313,7 +348,7 @@ class DataModule(L.LightningDataModule):
                 f"{self.root} --eval-context-views {k}`"
             )
         check_target_count(self.root, folder, self.eval_num_target_views, record)
-        return EvalStream(shards, self._config(False), self.rank, self.world_size, counters)
+        return EvalStream(shards, self._config(False), self.rank, self.world_size, counters, self._fetch())
 
     def train_dataloader(self) -> DataLoader:
         return self._loader(self.train_dataset(), on_epoch_start=self._sync_epoch_start)
@@ -369,7 +404,7 @@ def check_target_count(root: str | Path, folder: str, want: int | None, record: 
     if want is None:
         return
     if record is None:
-        manifest = read_manifest(root)
+        manifest = read_manifest(local_folder(root))
         record = None if manifest is None else manifest.splits.get(folder)
     counts = {} if record is None else record.target_counts
     short = sum(n for targets, n in counts.items() if targets < want)
@@ -379,6 +414,24 @@ def check_target_count(root: str | Path, folder: str, want: int | None, record: 
             f"shards in {root} carry fewer targets (from {min(counts)} to {max(counts)}); give at most "
             f"{min(counts)}, or leave it unset to evaluate every target"
         )
+
+
+def local_folder(root: str | Path) -> Path:
+    """The folder holding the manifest of ``root``: ``root``, or for a URL the folder this process fetched its
+    manifest into (:func:`aesplat.data.remote.manifest_folder`)."""
+    return manifest_folder(str(root)) if is_url(str(root)) else Path(root)
+
+
+def find_shards(root: str | Path, split: str) -> list[str]:
+    """The shard paths of ``root/<split>`` (:func:`aesplat.data.manifest.find_shards`); for a URL, those its
+    manifest lists, in the folder its manifest was fetched into, fetched when read."""
+    return find_listed_shards(local_folder(root), split, fetched_later=is_url(str(root)))
+
+
+def has_split(root: str | Path, split: str) -> bool:
+    """Whether the shards of ``root`` (a folder or a URL) hold ``split``
+    (:func:`aesplat.data.manifest.has_split`)."""
+    return split_listed(local_folder(root), split)
 
 
 def validation_split(root: str | Path, validate_on_test: bool = False) -> str:

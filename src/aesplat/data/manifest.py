@@ -155,11 +155,18 @@ def probe_shard(path: Path) -> None:
                         f"--out {path.parent.parent}`")  # fmt: skip
 
 
-def find_shards(root: str | Path, split: str) -> list[str]:
+def find_shards(root: str | Path, split: str, fetched_later: bool = False) -> list[str]:
     """Sorted shard paths of ``root/<split>``: those the manifest lists if there is one (stale tars from an
     older conversion are ignored), else every ``*.tar``, each checked to be a shard. A one-line error naming
-    the fix if there are none, or they are not shards."""
+    the fix if there are none, or they are not shards. ``fetched_later``: ``root`` is the cache of a URL
+    (:mod:`aesplat.data.remote`), whose shards are fetched, and checked against the manifest's SHA-256, when
+    read: every shard the manifest lists, none probed."""
     root = Path(root)
+    if fetched_later:
+        listed = read_manifest(root).splits.get(split)
+        if listed is None or not listed.shards:
+            raise MissingFileError(f"no {split} shards listed in the manifest.json of {root}")
+        return sorted(str(root / split / s.shard) for s in listed.shards)
     if not root.is_dir():
         raise MissingFileError(
             f"no shards in {root}: the folder does not exist; give the folder `{CONVERT} --out` wrote, or "
@@ -206,11 +213,12 @@ def partition(scenes: list[SceneRef], part: int, parts: int) -> list[SceneRef]:
     return scenes[part::parts]
 
 
-def training_scenes(root: str | Path) -> list[SceneRef]:
+def training_scenes(root: str | Path, fetched_later: bool = False) -> list[SceneRef]:
     """Every training scene of the shards under ``root``, by shard then key. Shards of pre-drawn samples
-    (manifest version 1) are refused with the command that converts their source again."""
+    (manifest version 1) are refused with the command that converts their source again. ``fetched_later``:
+    as :func:`find_shards`."""
     root = Path(root)
-    shards = find_shards(root, "train")
+    shards = find_shards(root, "train", fetched_later)
     manifest = read_manifest(root)
     if manifest is None:
         raise MissingFileError(f"no manifest.json in {root}: training reads the scene list `{CONVERT}` writes "

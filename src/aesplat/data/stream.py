@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import tarfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,14 +66,18 @@ def _worker() -> tuple[int, int]:
 
 
 class _ShardStream(IterableDataset):
-    """Shared plumbing: rank, counters and safe reading."""
+    """Shared plumbing: rank, counters and safe reading. ``fetch``: called on a shard's path before it is
+    opened, where the shards come from a URL (:meth:`aesplat.data.remote.RemoteShards.fetch`: the shard is
+    downloaded and verified in the process that reads it, or fails the run in one line, never skipped)."""
 
-    def __init__(self, cfg: StreamConfig, rank: int, world_size: int, counters: Tensor) -> None:
+    def __init__(self, cfg: StreamConfig, rank: int, world_size: int, counters: Tensor,
+                 fetch: Callable[[str], str] | None = None) -> None:  # fmt: skip
         super().__init__()
         self.cfg = cfg
         self.rank = rank
         self.world_size = world_size
         self.counters = counters
+        self.fetch = fetch
 
     def _count(self, what: str, n: int = 1) -> None:
         info = get_worker_info()
@@ -83,6 +87,8 @@ class _ShardStream(IterableDataset):
     def _samples(self, shard: str, scenes: bool = False) -> Iterator:
         """The samples of a shard (``scenes``: indexed :class:`SceneEntry` objects); a corrupt shard is
         abandoned at the point of damage, counted and logged."""
+        if self.fetch is not None:
+            shard = self.fetch(shard)
         try:
             yield from index_scenes(shard) if scenes else read_tar(shard)
         except (tarfile.TarError, EOFError, OSError, ValueError) as e:
@@ -100,8 +106,9 @@ class TrainStream(_ShardStream):
 
     def __init__(self, scenes: list[SceneRef], cfg: StreamConfig, sampler: ViewSampler, rank: int,
                  world_size: int, counters: Tensor, step: StepTracker, curriculum: GapCurriculum,
-                 batches_per_rank: int, seed: int = 0, shuffle_buffer: int = 64) -> None:  # fmt: skip
-        super().__init__(cfg, rank, world_size, counters)
+                 batches_per_rank: int, seed: int = 0, shuffle_buffer: int = 64,
+                 fetch: Callable[[str], str] | None = None) -> None:  # fmt: skip
+        super().__init__(cfg, rank, world_size, counters, fetch)
         if batches_per_rank < 1:
             raise ValueError(f"train_batches_per_epoch must be >= 1, got {batches_per_rank}")
         self.scenes = scenes
@@ -235,10 +242,9 @@ class EvalStream(_ShardStream):
     reads every shard and keeps the samples whose running index falls to it.
     """
 
-    def __init__(
-        self, shards: list[str], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor
-    ) -> None:
-        super().__init__(cfg, rank, world_size, counters)
+    def __init__(self, shards: list[str], cfg: StreamConfig, rank: int, world_size: int, counters: Tensor,
+                 fetch: Callable[[str], str] | None = None) -> None:  # fmt: skip
+        super().__init__(cfg, rank, world_size, counters, fetch)
         if not shards:
             raise ValueError("no shards to stream")
         self.shards = sorted(str(s) for s in shards)

@@ -1,0 +1,301 @@
+"""Shards behind an http URL (aesplat.data.remote), against a real nginx on 127.0.0.1 (scripts/local_nginx.py,
+which installs Debian's nginx when missing): the data read equal the local folder's, only the shards read are
+fetched, a verified shard is reused, and each fault ends in a successful retry or one line, never in a step on
+bad bytes."""
+
+from __future__ import annotations
+
+import multiprocessing
+import shutil
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from aesplat import cli
+from aesplat.data import DataModule
+from aesplat.data.manifest import read_manifest, sha256
+from aesplat.data.remote import DownloadSettings, FetchError, RemoteShards
+from aesplat.errors import UserError
+from tests.helpers import aesplat, common, need, one_line, sample_keys
+from tests.script_loader import load_script
+
+TOKEN = "tok-3f9c1d7e"  # what /auth/ accepts; a test looks for it in everything a run writes
+FAST = DownloadSettings(retries=2, timeout=5.0, backoff=0.05)
+LOADER = {"image_size": 28, "batch_size": 2, "gap_initial": (2, 4), "gap_final": (2, 4), "gap_warmup_steps": 0,
+          "train_batches_per_epoch": 4, "shuffle_buffer": 4, "validate_on_test": True}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def local_nginx():
+    module = load_script("local_nginx")
+    try:
+        module.nginx_binary()
+    except SystemExit:
+        need(False, "nginx")
+    return module
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """Shards of 4 training scenes (one a shard) and 2 test scenes."""
+    from tests.helpers import make_shards
+
+    return make_shards(tmp_path_factory.mktemp("served"), scenes=4, test_scenes=2, seed=1, scenes_per_chunk=1)
+
+
+@pytest.fixture
+def server(local_nginx, served, tmp_path):
+    """An nginx serving a copy of ``served`` (a test may change it), stopped after the test."""
+    root = tmp_path / "root"
+    shutil.copytree(served, root)
+    with local_nginx.Nginx(root, tmp_path / "nginx", token=TOKEN) as nginx:
+        yield nginx
+
+
+def shard_gets(server) -> list[tuple[str, int, str]]:
+    """(path, status, Range) of every GET of a shard the server answered."""
+    return [(uri, status, ranged) for method, uri, status, ranged in server.requests()
+            if method == "GET" and uri.endswith(".tar")]  # fmt: skip
+
+
+def test_a_url_gives_the_folder_s_batches_and_a_verified_shard_is_reused(server, tmp_path):
+    local = DataModule(root=str(server.root), num_workers=2, **LOADER)
+    remote = DataModule(root=server.url + "/", cache_dir=str(tmp_path / "cache"), num_workers=2, **LOADER)
+    want = [sample_keys(b) for b in local.train_dataloader()]
+    assert [sample_keys(b) for b in remote.train_dataloader()] == want
+    assert len(list(remote.val_dataloader())) == len(list(local.val_dataloader())) == 2
+    assert len(list(remote.test_dataloader())) == 2
+    fetched = sorted(uri for uri, _, _ in shard_gets(server))
+    assert fetched == sorted(f"/{p.relative_to(server.root)}" for p in server.root.glob("*/*.tar"))
+    cache = tmp_path / "cache"
+    for uri in fetched:
+        assert (cache / uri[1:]).read_bytes() == (server.root / uri[1:]).read_bytes()
+    assert not list(cache.rglob("*.part"))
+
+    again = DataModule(root=server.url, cache_dir=str(cache), num_workers=2, **LOADER)
+    assert [sample_keys(b) for b in again.train_dataloader()] == want
+    assert sorted(uri for uri, _, _ in shard_gets(server)) == fetched  # no second GET of any shard
+    assert [u for m, u, _, _ in server.requests() if u == "/manifest.json"] == ["/manifest.json"] * 2
+
+
+def test_a_rank_fetches_only_the_shards_it_reads(server, tmp_path):
+    dm = DataModule(root=server.url, cache_dir=str(tmp_path / "cache"), num_workers=0, **LOADER)
+    dm.set_distributed(1, 2)
+    list(dm.train_dataloader())
+    mine = sorted({Path(s.shard).name for s in dm.train_dataset().scenes})
+    assert len(mine) == 2
+    assert sorted(uri for uri, _, _ in shard_gets(server)) == [f"/train/{name}" for name in mine]
+
+
+def test_a_changed_shard_in_a_new_manifest_is_fetched_again(server, tmp_path):
+    first = RemoteShards(server.url, tmp_path / "cache", FAST)
+    shard = first.open() / "test" / "test-000000.tar"
+    first.fetch(shard)
+    # A new conversion on the server: other bytes, another SHA-256 in its manifest.
+    served = server.root / "test" / "test-000000.tar"
+    served.write_bytes(served.read_bytes() + b"\0" * 10240)
+    manifest = server.root / "manifest.json"
+    manifest.write_text(manifest.read_text().replace(read_manifest(server.root).splits["test"].shards[0].sha256,
+                                                     sha256(served)))  # fmt: skip
+    second = RemoteShards(server.url, tmp_path / "cache", FAST)
+    second.open()
+    assert Path(second.fetch(shard)).read_bytes() == served.read_bytes()
+    assert [uri for uri, _, _ in shard_gets(server)] == ["/test/test-000000.tar"] * 2
+
+
+def test_a_cut_download_resumes_with_a_range_request(server, tmp_path):
+    remote = RemoteShards(server.url, tmp_path / "cache", FAST)
+    shard = remote.open() / "train" / "train-000001.tar"
+    whole = (server.root / "train" / "train-000001.tar").read_bytes()
+    shard.parent.mkdir(parents=True)
+    shard.with_name(shard.name + ".part").write_bytes(whole[:10_000])
+    assert Path(remote.fetch(shard)).read_bytes() == whole
+    assert shard_gets(server) == [("/train/train-000001.tar", 206, "bytes=10000-")]
+
+
+def test_a_server_stopped_in_the_middle_of_a_shard_is_resumed_when_it_is_back(local_nginx, served, tmp_path):
+    # 30 kB at 12 kB/s: the server stops after the first bytes have come, and is back during the backoff.
+    with local_nginx.Nginx(served, tmp_path / "nginx", slow_rate="12k") as server:
+        remote = RemoteShards(server.url + "/slow", tmp_path / "cache", DownloadSettings(6, 5.0, 0.2))
+        shard = remote.open() / "train" / "train-000002.tar"
+        part = shard.with_name(shard.name + ".part")
+        done: list = []
+        fetching = threading.Thread(target=lambda: done.append(remote.fetch(shard)))
+        fetching.start()
+        deadline = time.monotonic() + 10
+        while not (part.exists() and part.stat().st_size > 0) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        server.stop()
+        cut = part.stat().st_size
+        time.sleep(0.3)
+        server.start()
+        fetching.join(30)
+        assert done == [str(shard)]
+    assert shard.read_bytes() == (served / "train" / "train-000002.tar").read_bytes()
+    # nginx logs a request when it ends: the one cut by the stop is not there; the next resumed it.
+    (uri, status, ranged), *later = shard_gets(server)
+    resumed_from = int(ranged.removeprefix("bytes=").removesuffix("-"))
+    assert (uri, status) == ("/slow/train/train-000002.tar", 206) and later == []
+    assert 0 < cut <= resumed_from < shard.stat().st_size
+
+
+def _fetch_in_process(remote: RemoteShards, shard: Path, out) -> None:
+    out.put(remote.fetch(shard))
+
+
+def test_two_processes_wanting_one_shard_download_it_once(local_nginx, served, tmp_path):
+    with local_nginx.Nginx(served, tmp_path / "nginx", slow_rate="60k") as server:
+        remote = RemoteShards(server.url + "/slow", tmp_path / "cache", FAST)
+        shard = remote.open() / "train" / "train-000000.tar"
+        context = multiprocessing.get_context("fork")
+        out = context.Queue()
+        workers = [context.Process(target=_fetch_in_process, args=(remote, shard, out)) for _ in range(2)]
+        for w in workers:
+            w.start()
+        results = [out.get(timeout=30) for _ in workers]
+        for w in workers:
+            w.join(10)
+    assert results == [str(shard)] * 2 and [w.exitcode for w in workers] == [0, 0]
+    assert shard.read_bytes() == (served / "train" / "train-000000.tar").read_bytes()
+    assert [uri for uri, _, _ in shard_gets(server)] == ["/slow/train/train-000000.tar"]
+
+
+def test_a_missing_shard_fails_the_run_in_one_line(server, tmp_path):
+    (server.root / "train" / "train-000003.tar").unlink()
+    dm = DataModule(root=server.url, cache_dir=str(tmp_path / "cache"), num_workers=0, **LOADER)
+    with pytest.raises(FetchError) as err:
+        list(dm.train_dataloader())
+    line = one_line(str(err.value))
+    url = f"{server.url}/train/train-000003.tar"
+    assert line == (f"shard train/train-000003.tar {url}: not found on the server (HTTP 404); check data.root, "
+                    "or upload the file the manifest lists")  # fmt: skip
+
+
+def test_a_fetch_error_raised_in_a_data_loader_worker_is_still_one_line():
+    """torch rebuilds a worker's exception in the main process from a message that holds the worker's
+    traceback; the line comes back out of it."""
+    from torch._utils import ExceptionWrapper
+
+    line = "shard train/a.tar http://host/train/a.tar: not found on the server (HTTP 404)"
+    try:
+        raise FetchError(line)
+    except FetchError:
+        wrapped = ExceptionWrapper(where="in DataLoader worker process 1")
+    with pytest.raises(FetchError) as err:
+        wrapped.reraise()
+    assert str(err.value) == line
+
+
+def test_a_shard_with_other_bytes_than_the_manifest_is_fetched_twice_then_refused(server, tmp_path):
+    served = server.root / "train" / "train-000000.tar"
+    data = bytearray(served.read_bytes())
+    data[5000] ^= 0xFF
+    served.write_bytes(bytes(data))
+    dm = DataModule(root=server.url, cache_dir=str(tmp_path / "cache"), num_workers=0, **LOADER)
+    with pytest.raises(FetchError) as err:
+        list(dm.train_dataloader())
+    line = one_line(str(err.value))
+    url = f"{server.url}/train/train-000000.tar"
+    assert line.startswith(
+        f"shard train/train-000000.tar fetched from {url} does not match the manifest (SHA-256 "
+    )
+    assert [u for u, _, _ in shard_gets(server) if u.endswith("-000000.tar")] == ["/train/train-000000.tar"] * 2
+    assert not list((tmp_path / "cache" / "train").glob("train-000000.tar*[!k]"))  # no copy, no part, no marker
+
+
+def test_a_throttled_server_completes_and_a_stalled_one_times_out_in_one_line(server, tmp_path):
+    remote = RemoteShards(server.url + "/slow", tmp_path / "slow", FAST)
+    shard = remote.open() / "test" / "test-000001.tar"
+    assert Path(remote.fetch(shard)).read_bytes() == (server.root / "test" / "test-000001.tar").read_bytes()
+
+    crawl = RemoteShards(server.url + "/crawl", tmp_path / "crawl", DownloadSettings(1, 0.5, 0.0))
+    shard = crawl.open() / "test" / "test-000001.tar"
+    with pytest.raises(FetchError) as err:
+        crawl.fetch(shard)
+    assert one_line(str(err.value)) == (
+        f"could not fetch shard test/test-000001.tar {server.url}/crawl/test/test-000001.tar in 2 tries: no "
+        "answer or data for 0.5 s (data.download_timeout); check the server, or raise data.download_retries / "
+        "data.download_timeout"
+    )
+    assert not shard.exists()
+
+
+def test_a_server_that_stays_down_fails_in_one_line_after_the_retries(server, tmp_path):
+    remote = RemoteShards(server.url, tmp_path / "cache", FAST)
+    shard = remote.open() / "train" / "train-000000.tar"
+    server.stop()
+    with pytest.raises(FetchError) as err:
+        remote.fetch(shard)
+    assert one_line(str(err.value)) == (
+        f"could not fetch shard train/train-000000.tar {server.url}/train/train-000000.tar in 3 tries: the "
+        "connection was refused; check the server, or raise data.download_retries / data.download_timeout"
+    )
+
+
+def test_credentials_come_from_the_environment_and_a_refusal_names_the_variable(server, tmp_path, monkeypatch):
+    url = server.url + "/auth"
+    monkeypatch.delenv("AESPLAT_DATA_TOKEN", raising=False)
+    monkeypatch.delenv("AESPLAT_DATA_USER", raising=False)
+    with pytest.raises(FetchError, match="HTTP 401, no credentials were given: set AESPLAT_DATA_TOKEN"):
+        RemoteShards(url, tmp_path / "cache", FAST).open()
+    monkeypatch.setenv("AESPLAT_DATA_TOKEN", "not-the-token")
+    with pytest.raises(FetchError) as err:
+        RemoteShards(url, tmp_path / "cache", FAST).open()
+    assert one_line(str(err.value)) == (
+        f"the manifest {url}/manifest.json: HTTP 401, the token in AESPLAT_DATA_TOKEN was refused: set it to a "
+        "token this server accepts"
+    )
+    monkeypatch.setenv("AESPLAT_DATA_TOKEN", TOKEN)
+    remote = RemoteShards(url, tmp_path / "cache", FAST)
+    shard = remote.open() / "test" / "test-000000.tar"
+    assert Path(remote.fetch(shard)).read_bytes() == (server.root / "test" / "test-000000.tar").read_bytes()
+
+
+@pytest.mark.parametrize(
+    "root, words",
+    [
+        ("http://me:pw@127.0.0.1:9/shards", "credentials in the URL would be saved with the run's config.yaml"),
+        ("s3://bucket/shards", "only http:// and https:// URLs are read"),
+        ("https://host/shards?sig=abc", "without a query (?...) or fragment"),
+    ],
+)
+def test_a_url_that_cannot_be_used_is_refused_in_one_line(root, words, capsys, tmp_path):
+    with pytest.raises(UserError, match=words.replace("?", r"\?").replace("(", r"\(").replace(")", r"\)")):
+        DataModule(root=root)
+    code, err = aesplat(capsys, "fit", *common(root, tmp_path / "run"))
+    assert code == 1 and words in one_line(err) and "me:pw" not in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_download_settings_out_of_range_are_refused_before_anything_is_fetched(capsys, tmp_path):
+    with pytest.raises(UserError, match="data.download_timeout = 0: it must be more than 0 seconds"):
+        DataModule(root="http://127.0.0.1/x", download_timeout=0)
+    with pytest.raises(UserError, match="data.download_retries = -1: it must be 0 or more tries"):
+        DataModule(root="http://127.0.0.1/x", download_retries=-1)
+    run_dir = tmp_path / "run"
+    code, err = aesplat(capsys, "fit", *common("http://127.0.0.1:9/x", run_dir), "--data.download_backoff=-1")
+    assert code == 1 and one_line(err) == (
+        "aesplat fit: invalid configuration: data.download_backoff = -1.0: it must be 0 or more seconds"
+    )
+    assert not run_dir.exists()
+
+
+def test_a_fit_from_a_url_trains_and_saves_no_credential(server, tmp_path, monkeypatch, capsys):
+    """A real `aesplat fit` from an http URL that needs a token: it trains, and the token is in no file the run
+    wrote nor in its output."""
+    monkeypatch.setenv("AESPLAT_DATA_TOKEN", TOKEN)
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "tmp"))  # the default cache
+    run_dir = tmp_path / "run"
+    url = server.url + "/auth"
+    args = ["-c", "conf/smoke.yaml", "--data.root", url, "--trainer.default_root_dir", str(run_dir)]
+    cli.main(["fit", *args])
+    out, err = capsys.readouterr()
+    assert (run_dir / "checkpoints" / "last.ckpt").is_file()
+    assert f"root: {url}" in (run_dir / "config.yaml").read_text()
+    written = [p for p in run_dir.rglob("*") if p.is_file()]
+    assert written and not [p for p in written if TOKEN.encode() in p.read_bytes()]
+    assert TOKEN not in err + out
+    cache = next((tmp_path / "tmp" / "aesplat-shards").iterdir())
+    assert sorted(p.name for p in (cache / "train").glob("*.tar")) == [f"train-00000{i}.tar" for i in range(4)]
