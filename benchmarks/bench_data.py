@@ -22,6 +22,16 @@ machine other processes only ever slow a run down). The load average is recorded
 
 Writes ``--out``/bench_data.json (every figure, the date, commit, machine and load) and
 ``--out``/bench_data.md (the table the docs page includes).
+
+    python benchmarks/bench_data.py --sources url [--repeats 3 --batches 100]
+
+compares the same loader on the scene shards of the synthetic source read from their folder and from an
+http URL (``data.root``; docs/data.md, "Data on a server"): served by nginx on 127.0.0.1
+(``scripts/local_nginx.py``, which installs it when missing), with a cold cache (emptied before each run: every
+shard is downloaded and verified while the loader runs) and a warm one (the shards of the run before, reused
+without a download). These runs time every batch from the DataLoader's start, worker start-up and downloads
+included, since a cold cache pays its cost in the first batches. Writes ``--out``/bench_data_url.json and
+``--out``/bench_data_url.md; the other figures stay as they are.
 """
 
 from __future__ import annotations
@@ -41,6 +51,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+URL_CASES = {"local": "local folder", "cold": "URL, cold cache", "warm": "URL, warm cache"}
 BASELINE = "c5c0f51"  # main before training drew its views at run time: pre-drawn samples, manifest version 1
 SOURCES = {  # name: (generate_dataset arguments, the gap range of its curriculum: first phase = lo only)
     "synthetic": (
@@ -102,17 +114,22 @@ def run_pipeline(name: str, work: Path, size: int, re10k_size: int, source: str)
 
 
 def loader_rate(name: str, work: Path, source: str, gap: tuple[int, int], size: int, batch_size: int,
-                workers: int, batches: int, examples_per_scene: int) -> dict:  # fmt: skip
-    """In the subprocess: training samples per second of the DataModule's stream, after a warm-up."""
+                workers: int, batches: int, examples_per_scene: int, root: str | None = None,
+                cache_dir: str | None = None, warmup: int = 3) -> dict:  # fmt: skip
+    """In the subprocess: training samples per second of the DataModule's stream, after ``warmup`` batches
+    (worker start-up and the shuffle buffers). ``root``: another data.root than the converted folder (a URL,
+    its shards kept in ``cache_dir``)."""
     from aesplat.data import DataModule
 
     extra = {"examples_per_scene": examples_per_scene} if examples_per_scene > 1 else {}
-    dm = DataModule(root=str(work / name / source), image_size=size, batch_size=batch_size, num_workers=workers,
-                    gap_initial=gap, gap_final=gap, gap_warmup_steps=0, flip_augment=True,
-                    train_batches_per_epoch=batches + 3, **extra)  # fmt: skip
+    if cache_dir is not None:
+        extra["cache_dir"] = cache_dir
+    dm = DataModule(root=root or str(work / name / source), image_size=size, batch_size=batch_size,
+                    num_workers=workers, gap_initial=gap, gap_final=gap, gap_warmup_steps=0, flip_augment=True,
+                    train_batches_per_epoch=batches + warmup, **extra)  # fmt: skip
     before = load()
     it = iter(dm.train_dataloader())
-    for _ in range(3):  # worker start-up and the shuffle buffers
+    for _ in range(warmup):
         next(it)
     start, n = time.perf_counter(), 0
     for batch in it:
@@ -131,12 +148,14 @@ def in_subprocess(pythonpath: Path, task: str, payload: dict) -> dict:
 # ----------------------------------------------------------------------------------------------- the run
 
 
-def make_sources(work: Path) -> None:
-    """The two sources, generated once. The RealEstate10K-layout one loses its ``dataset.json`` (kept as
-    ``generated.json``): RealEstate10K has none, so both pipelines take their default gap range, 25..90."""
+def make_sources(work: Path, names: tuple[str, ...] = tuple(SOURCES)) -> None:
+    """The sources ``names`` (both by default), generated once. The RealEstate10K-layout one loses its
+    ``dataset.json`` (kept as ``generated.json``): RealEstate10K has none, so both pipelines take their default
+    gap range, 25..90."""
     from aesplat.data import generate_dataset
 
-    for name, (options, _) in SOURCES.items():
+    for name in names:
+        options = SOURCES[name][0]
         src = work / "src" / name
         if not (src / "train" / "index.json").is_file():
             print(f"bench_data: generating the {name} source", flush=True)
@@ -202,6 +221,83 @@ def table(result: dict) -> list[str]:
     return lines
 
 
+def url_comparison(a: argparse.Namespace, work: Path) -> dict:
+    """The loader on the synthetic source's scene shards from their folder and from a URL (cold and warm
+    cache), ``a.repeats`` rounds alternating between the three; every batch timed from the loader's start."""
+    from common import provenance
+    from local_nginx import Nginx
+
+    source, (_, (lo, hi)) = "synthetic", SOURCES["synthetic"]
+    shards = work / "scenes" / source
+    if not (shards / "manifest.json").is_file():
+        print(f"bench_data: converting {source} with this checkout", flush=True)
+        payload = {"name": "scenes", "work": str(work), "size": a.size, "re10k_size": a.re10k_size,
+                   "source": source}  # fmt: skip
+        in_subprocess(ROOT / "src", "convert", payload)
+    load_start = [round(v, 2) for v in os.getloadavg()]
+    cache = work / "url-cache"
+    runs: dict[str, list[dict]] = {case: [] for case in URL_CASES}
+    with Nginx(shards, work / "nginx") as server:
+        for _ in range(a.repeats):
+            for case in URL_CASES:
+                print(f"bench_data: loader, {URL_CASES[case]}, {source} (gap {lo}–{hi})", flush=True)
+                payload = {"name": "scenes", "work": str(work), "source": source, "gap": [lo, hi],
+                           "size": a.size, "batch_size": a.batch_size, "workers": a.workers,
+                           "batches": a.batches, "examples_per_scene": 1, "warmup": 0}  # fmt: skip
+                if case != "local":
+                    payload |= {"root": server.url, "cache_dir": str(cache)}
+                if case == "cold":
+                    shutil.rmtree(cache, ignore_errors=True)
+                runs[case].append(in_subprocess(ROOT / "src", "loader", payload))
+        downloaded = [r for r in server.requests() if r[1].endswith(".tar")]
+    rates = {case: [r["samples_per_second"] for r in runs[case]] for case in URL_CASES}
+    medians = {case: statistics.median(v) for case, v in rates.items()}
+    shard_bytes = sum(p.stat().st_size for p in (shards / "train").glob("*.tar"))
+    return {
+        **provenance(load_start),
+        "command": "python benchmarks/bench_data.py " + " ".join(a.argv),
+        "settings": {
+            "source": source,
+            "gap": [lo, hi],
+            "size": a.size,
+            "batch_size": a.batch_size,
+            "workers": a.workers,
+            "batches": a.batches,
+            "repeats": a.repeats,
+            "train_shard_bytes": shard_bytes,
+        },  # fmt: skip
+        "runs": runs,
+        "samples_per_second": {
+            case: {"median": medians[case], "lowest": min(v), "highest": max(v)} for case, v in rates.items()
+        },  # fmt: skip
+        "ratio_to_local": {case: medians[case] / medians["local"] for case in ("cold", "warm")},
+        "shard_downloads": len(downloaded),
+        "shard_downloads_expected": a.repeats * len(list((shards / "train").glob("*.tar"))),
+    }
+
+
+def url_table(result: dict) -> list[str]:
+    s, m = result["settings"], result["machine"]
+    modified = " (with uncommitted changes)" if result["modified"] else ""
+    lines = [
+        f"Measured {result['date'][:10]} at commit {result['commit']}{modified} "
+        f"on {m['cores']} cores ({m['cpu']}), load average {result['load']['start'][0]} at the start and "
+        f"{result['load']['end'][0]} at the end; `{result['command'].strip()}`. Median (lowest–highest) of "
+        f"{s['repeats']} runs; loader: {s['workers']} workers, batch {s['batch_size']}, {s['size']} px, "
+        f"{s['batches']} batches timed from the loader's start; {s['train_shard_bytes'] / 1e6:.0f} MB of "
+        "training shards; nginx on 127.0.0.1.",
+        "",
+        "| data.root | loader samples/s | ratio to the local folder |",
+        "| --- | ---: | ---: |",
+    ]
+    for case, label in URL_CASES.items():
+        rate = result["samples_per_second"][case]
+        ratio = "" if case == "local" else f"{result['ratio_to_local'][case]:.2f}×"
+        cell = f"{rate['median']:.0f} ({rate['lowest']:.0f}–{rate['highest']:.0f})"
+        lines.append(f"| {label} | {cell} | {ratio} |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--baseline", default=BASELINE, help=f"the commit of the pre-drawn pipeline ({BASELINE})")
@@ -213,6 +309,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=2, help="DataLoader workers")
     p.add_argument("--batches", type=int, default=100, help="timed batches per loader run")
     p.add_argument("--repeats", type=int, default=5, help="conversions and loader runs per case and pipeline")
+    p.add_argument("--sources", choices=("folders", "url"), default="folders",
+                   help="folders: the pre-drawn and scene pipelines (default); url: the scene shards from "
+                   "their folder and from an http URL, cold and warm cache")  # fmt: skip
     p.add_argument("--task", help=argparse.SUPPRESS)
     p.add_argument("--payload", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
@@ -224,7 +323,16 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     work = a.work.resolve()
-    make_sources(work)
+    make_sources(work, ("synthetic",) if a.sources == "url" else tuple(SOURCES))
+    if a.sources == "url":
+        a.argv = argv if argv is not None else sys.argv[1:]
+        result = url_comparison(a, work)
+        a.out.mkdir(parents=True, exist_ok=True)
+        (a.out / "bench_data_url.json").write_text(json.dumps(result, indent=1) + "\n")
+        report = "\n".join(url_table(result))
+        (a.out / "bench_data_url.md").write_text(report + "\n")
+        print(report)
+        return 0
     paths = {"today": baseline_source(a.baseline, work), "scenes": ROOT / "src"}
     dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
     result: dict = {
