@@ -237,6 +237,7 @@ def url_comparison(a: argparse.Namespace, work: Path) -> dict:
     load_start = [round(v, 2) for v in os.getloadavg()]
     cache = work / "url-cache"
     runs: dict[str, list[dict]] = {case: [] for case in URL_CASES}
+    shutil.rmtree(work / "nginx", ignore_errors=True)  # its access log counts this run's downloads only
     with Nginx(shards, work / "nginx") as server:
         for _ in range(a.repeats):
             for case in URL_CASES:
