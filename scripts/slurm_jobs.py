@@ -218,16 +218,16 @@ def measure(run: int, env: dict[str, str], log: Path) -> dict:
 PREEMPTED = ("jobs", "preempted")
 ROWS = [  # label, path into a run's figures
     ("2-task CPU training, 6 steps (uninterrupted)", ("jobs", "uninterrupted", "seconds")),
-    ("the same on two nodes, a task each", ("jobs", "two-nodes", "seconds")),
-    ("the two-node job preempted, requeued, resumed", ("jobs", "two-nodes-preempted", "seconds")),
-    ("node 2 killed before step 4: loss to the job's end", ("jobs", "lost-node-killed", "after_loss")),
-    ("node 2 frozen (timeout 30 s): loss to the job's end", ("jobs", "lost-node-frozen", "after_loss")),
     ("the same job preempted during step 3, requeued, resumed", (*PREEMPTED, "seconds")),
     ("— submission to start", (*PREEMPTED, "queued")),
     ("— start to the signal (start-up, steps 1–2, hold)", (*PREEMPTED, "phases", "start_to_signal")),
     ("— signal to `Requeuing` (step 3, `hpc_ckpt_1.ckpt`)", (*PREEMPTED, "phases", "signal_to_requeue")),
     ("— requeued, held before it starts again (`cred_expire`)", (*PREEMPTED, "phases", "held")),
     ("— restarted job (start-up, resume, steps 4–6)", (*PREEMPTED, "phases", "restarted")),
+    ("the uninterrupted job on two nodes, a task each", ("jobs", "two-nodes", "seconds")),
+    ("the two-node job preempted, requeued, resumed", ("jobs", "two-nodes-preempted", "seconds")),
+    ("node 2 killed before step 4: loss to the job's end", ("jobs", "lost-node-killed", "after_loss")),
+    ("node 2 frozen (timeout 30 s): loss to the job's end", ("jobs", "lost-node-frozen", "after_loss")),
     ("`eval.sbatch` on the result (1 task)", ("jobs", "eval", "seconds")),
     ("tasks/GPUs mismatch (fails before `srun`)", ("jobs", "mismatch", "seconds")),
     ("the tests together (pytest, collection included)", ("tests", "seconds")),
@@ -256,8 +256,9 @@ def table(record: dict) -> str:
         f"({machine['cores']} cores, {machine['memory_gib']} GiB), SLURM {cluster['slurm']}",
         f"(`cred_expire={cluster['cred_expire_s']}`, `KillWait={cluster['kill_wait']}`);",
         "load averages (1 minute) at the start and the end of each run. Seconds from the submission to the end",
-        "of each job, from slurmctld's log (the rows marked — split the preempted job); the tests' total is",
-        "pytest's. Command:",
+        "of each job, from slurmctld's log (the rows marked — split the preempted job), except the rows of a",
+        "lost node: from the loss to the job's end, as the test measured it; the tests' total is pytest's.",
+        "Command:",
         f"`{record['command']}`.",
     ]
     lines = [
