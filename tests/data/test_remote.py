@@ -173,6 +173,16 @@ def test_a_missing_shard_fails_the_run_in_one_line(server, tmp_path):
                     "or upload the file the manifest lists")  # fmt: skip
 
 
+def test_a_url_without_a_manifest_stops_the_command_in_one_line(server, capsys, tmp_path):
+    run_dir = tmp_path / "run"
+    code, err = aesplat(capsys, "fit", *common(f"{server.url}/nowhere", run_dir))
+    assert code == 1 and one_line(err) == (
+        f"aesplat fit: the manifest {server.url}/nowhere/manifest.json: not found on the server (HTTP 404); "
+        "data.root must be the URL of the shard folder, the one holding manifest.json"
+    )
+    assert not run_dir.exists()
+
+
 def test_a_fetch_error_raised_in_a_data_loader_worker_is_still_one_line():
     """torch rebuilds a worker's exception in the main process from a message that holds the worker's
     traceback; the line comes back out of it."""
@@ -231,6 +241,17 @@ def test_a_server_that_stays_down_fails_in_one_line_after_the_retries(server, tm
     assert one_line(str(err.value)) == (
         f"could not fetch shard train/train-000000.tar {server.url}/train/train-000000.tar in 3 tries: the "
         "connection was refused; check the server, or raise data.download_retries / data.download_timeout"
+    )
+
+
+def test_a_cache_that_cannot_be_written_is_one_line(server, tmp_path):
+    remote = RemoteShards(server.url, tmp_path / "cache", FAST)
+    shard = remote.open() / "train" / "train-000000.tar"
+    (tmp_path / "cache" / "train").write_text("a file where the split's folder goes")
+    with pytest.raises(FetchError) as err:
+        remote.fetch(shard)
+    assert one_line(str(err.value)) == (
+        f"shard train/train-000000.tar from {server.url}: {tmp_path / 'cache' / 'train'}: File exists"
     )
 
 

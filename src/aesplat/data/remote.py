@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from ..errors import UserError
+from ..errors import UserError, os_error_line
 from .manifest import read_manifest, sha256
 
 log = logging.getLogger("aesplat.data")
@@ -45,6 +45,7 @@ USER_ENV = "AESPLAT_DATA_USER"
 PASSWORD_ENV = "AESPLAT_DATA_PASSWORD"
 RETRY_STATUS = {408, 425, 429, 500, 502, 503, 504}  # answers worth asking again; other errors are final
 CHUNK = 1 << 20
+MANIFEST = "the manifest"  # how messages name it
 _MANIFESTS: dict[str, Path] = {}  # URL -> the folder this process fetched its manifest into
 
 
@@ -180,6 +181,9 @@ class RemoteShards:
                 given = (f"no credentials were given: set {TOKEN_ENV} (a bearer token), or {USER_ENV} and "
                          f"{PASSWORD_ENV}")  # fmt: skip
             return FetchError(f"{what} {url}: HTTP {status}, {given}")
+        if status == 404 and what == MANIFEST:
+            return FetchError(f"{what} {url}: not found on the server (HTTP 404); data.root must be the URL of "
+                              "the shard folder, the one holding manifest.json")  # fmt: skip
         if status == 404:
             return FetchError(f"{what} {url}: not found on the server (HTTP 404); check data.root, or upload "
                               "the file the manifest lists")  # fmt: skip
@@ -228,13 +232,13 @@ class RemoteShards:
         def attempt() -> bytes:
             import requests
 
-            with self._get(url, "the manifest") as response:
+            with self._get(url, MANIFEST) as response:
                 try:
                     return response.content
                 except requests.RequestException as err:
                     raise _Retry(_why(err, self.settings.timeout)) from None
 
-        data = self._tries("the manifest", url, attempt)
+        data = self._tries(MANIFEST, url, attempt)
         self.cache.mkdir(parents=True, exist_ok=True)
         _replace_with(self.cache / "manifest.json", data)
         manifest = read_manifest(self.cache)
@@ -259,9 +263,12 @@ class RemoteShards:
                              "data_prep/to_shards.py")  # fmt: skip
         if _verified(path, want):
             return str(path)
-        with _locked(path.with_name(path.name + ".lock")):
-            if not _verified(path, want):  # another process may have fetched it meanwhile
-                self._download(name, path, want)
+        try:
+            with _locked(path.with_name(path.name + ".lock")):
+                if not _verified(path, want):  # another process may have fetched it meanwhile
+                    self._download(name, path, want)
+        except OSError as err:  # the cache's disk (full, read-only, ...): one line from a worker too
+            raise FetchError(f"shard {name} from {self.url}: {os_error_line(err)}") from None
         return str(path)
 
     def _download(self, name: str, path: Path, want: str) -> None:
