@@ -9,8 +9,9 @@ Everything nginx writes goes under the state folder: its nginx.conf, pid file, t
 ``access.log`` (one line a request: ``METHOD URI STATUS RANGE BYTES``, where RANGE is the request's Range
 header or ``-``). Besides ``/`` the server has three locations over the same folder, for the faults the tests
 play: ``/slow/`` sends a shard (``*.tar``) at most ``slow_rate`` bytes a second, ``/crawl/`` at most
-``crawl_rate`` (less than a client waiting a second for data accepts), and ``/auth/`` answers 401 to a request without the header
-``Authorization: Bearer TOKEN`` (``--token``). ``stop`` ends only the nginx whose pid the state folder holds.
+``crawl_rate`` (less than a client waiting a second for data accepts), and ``/auth/`` answers 401 to a
+request without the header ``Authorization: Bearer TOKEN`` (``--token``). ``stop`` ends only the nginx whose
+pid the state folder holds.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-CONF = """\
+CONF = r"""
 daemon off;
 master_process off;
 pid {state}/nginx.pid;
