@@ -68,10 +68,12 @@ def nginx_binary() -> str:
         raise SystemExit("nginx is not installed; as root: apt-get install -y nginx")
     print("local_nginx: installing nginx (apt-get)", file=sys.stderr, flush=True)
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-    subprocess.run(["apt-get", "update", "-qq"], check=True, env=env, stdout=subprocess.DEVNULL)
-    subprocess.run(["apt-get", "install", "-y", "-qq", "nginx"], check=True, env=env, stdout=subprocess.DEVNULL)
-    # The package starts the system's nginx (port 80) where it can; this folder's servers do not need it.
-    subprocess.run(["service", "nginx", "stop"], check=False, capture_output=True)
+    wait = ["-o", "DPkg::Lock::Timeout=300"]  # another install (the browser's, SLURM's) may hold the lock
+    subprocess.run(["apt-get", *wait, "update", "-qq"], check=True, env=env, stdout=subprocess.DEVNULL)
+    subprocess.run(["apt-get", *wait, "install", "-y", "-qq", "nginx"], check=True, env=env,
+                   stdout=subprocess.DEVNULL)  # fmt: skip
+    if shutil.which("service"):  # the package starts the system's nginx (port 80) where it can: not needed
+        subprocess.run(["service", "nginx", "stop"], check=False, capture_output=True)
     found = shutil.which("nginx", path=search)
     if not found:
         raise SystemExit("apt-get installed nginx, but no nginx executable is on the path")
