@@ -3,10 +3,10 @@
     python scripts/config_reference.py            # prints the Markdown the docs site shows on configuration.md
 
 The tables are read from the config dataclasses (``model.net``, ``model.loss``, ``model.optim``,
-``model.render``, ``model.eval``, ``wandb``, ``distributed``), the render settings (``model.render.options``) and the
-DataModule's arguments (``data``): key, type, default, meaning (the field's comment or docstring line), and the
-value each shipped ``conf/*.yaml`` gives it. The docs build (``scripts/mkdocs_hooks.py``) inserts it, so the
-page cannot drift from the code.
+``model.render``, ``model.eval``, ``wandb``, ``distributed``), the render settings (``model.render.options``)
+and the DataModule's arguments (``data``): key, type, default, meaning (the field's comment or docstring line),
+and the value each shipped ``conf/*.yaml`` gives it. The docs build (``scripts/mkdocs_hooks.py``) inserts it,
+so the page cannot drift from the code.
 """
 
 from __future__ import annotations
