@@ -165,6 +165,7 @@ def test_two_cpu_ranks_train_under_lightnings_slurm_environment(uninterrupted):
     assert len(wandb_run_ids(run_dir)) == 1
 
 
+@pytest.mark.slow  # `make test-slurm` runs it; in CI the two-node preempted job covers the requeue
 def test_preempted_job_is_requeued_and_ends_as_if_uninterrupted(uninterrupted, preempted):
     info, run_dir, record = preempted
     assert_resumed_exactly(info, run_dir, record, uninterrupted)
@@ -194,6 +195,8 @@ def test_a_preempted_two_node_job_resumes_exactly(two_nodes, two_nodes_preempted
     info, run_dir, record = two_nodes_preempted
     assert "2 node(s) x 1 CPU process(es)" in info["log"]
     assert_resumed_exactly(info, run_dir, record, two_nodes)
+    run_id = (run_dir / "wandb_run_id").read_text().strip()
+    assert wandb_run_ids(run_dir) == [run_id, run_id], "the requeued job must continue the same wandb run"
 
 
 def children(pid: int) -> list[int]:
