@@ -229,8 +229,7 @@ class DataModule(L.LightningDataModule):
 
     def has_split(self, split: str) -> bool:
         """Whether the shards hold ``split`` (see :func:`has_split`)."""
-        self.shard_folder()
-        return has_split(self.root, split)
+        return split_listed(self.shard_folder(), split)
 
     def validation_split(self) -> str:
         """The split validation runs on (:func:`validation_split`); on the test split, every call logs it."""

@@ -35,6 +35,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from ..errors import UserError, os_error_line
+from ..files import atomic_write
 from .manifest import read_manifest, sha256
 
 log = logging.getLogger("aesplat.data")
@@ -240,7 +241,7 @@ class RemoteShards:
 
         data = self._tries(MANIFEST, url, attempt)
         self.cache.mkdir(parents=True, exist_ok=True)
-        _replace_with(self.cache / "manifest.json", data)
+        atomic_write(self.cache / "manifest.json", lambda f: f.write(data))
         manifest = read_manifest(self.cache)
         self.expected = {f"{name}/{s.shard}": s.sha256 for name, split in manifest.splits.items()
                          for s in split.shards}  # fmt: skip
@@ -280,7 +281,7 @@ class RemoteShards:
         marker.unlink(missing_ok=True)
         if path.exists():  # a copy without a marker that matches: check its bytes once
             if sha256(path) == want:
-                _replace_with(marker, f"{want} {path.stat().st_size}\n".encode())
+                atomic_write(marker, lambda f: f.write(f"{want} {path.stat().st_size}\n".encode()))
                 return
             path.unlink()
         for attempt in (1, 2):
@@ -298,7 +299,7 @@ class RemoteShards:
                 )
             log.warning("shard %s from %s does not match the manifest's SHA-256: fetching it again", name, url)
         os.replace(part, path)
-        _replace_with(marker, f"{want} {size}\n".encode())
+        atomic_write(marker, lambda f: f.write(f"{want} {size}\n".encode()))
         seconds = max(time.monotonic() - start, 1e-6)
         log.info("fetched shard %s (%.1f MB, %.1f MB/s) into %s", name, size / 1e6, size / 1e6 / seconds,
                  self.cache)  # fmt: skip
@@ -367,18 +368,6 @@ def _verified(path: Path, want: str) -> bool:
         return digest == want and path.stat().st_size == int(size)
     except (OSError, ValueError):
         return False
-
-
-def _replace_with(path: Path, data: bytes) -> None:
-    """Write ``path`` whole: a file of this process's own, renamed into place."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 @contextmanager
