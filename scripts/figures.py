@@ -120,8 +120,9 @@ GPU_STEP_GOAL = 0.25  # the target seconds per `aesplat fit -c conf/re10k.yaml` 
 def _gpu_run() -> dict:
     """A computed source: docs/results/gpu/summary.json (``scripts/gpu_results.py``, the last GPU run) and what
     the GPU page reads from it: the step at the fewest context views against ``GPU_STEP_GOAL`` (``over_goal``,
-    a fraction), and per further count of views (``more_views``, in the order of ``fits``) what it adds to the
-    step (a fraction) and to the peak memory (GiB)."""
+    a fraction), per further count of views (``more_views``, in the order of ``fits``) what it adds to the
+    step (a fraction) and to the peak memory (GiB), and the peak memory at 6 views on the line through the
+    fewest and most views measured (``six_views_gib``)."""
     run = json.loads((REPO / "docs" / "results" / "gpu" / "summary.json").read_text())
     if not run["fits"]:
         return run
@@ -130,6 +131,10 @@ def _gpu_run() -> dict:
     run["goal"] = GPU_STEP_GOAL
     run["more_views"] = [{"context_views": f["context_views"], "time": f[step] / base[step] - 1,
                           "memory": f[memory] - base[memory]} for f in run["fits"][1:]]  # fmt: skip
+    last = run["fits"][-1]
+    if last["context_views"] != base["context_views"]:
+        per_view = (last[memory] - base[memory]) / (last["context_views"] - base["context_views"])
+        run["six_views_gib"] = base[memory] + per_view * (6 - base["context_views"])
     return run
 
 
