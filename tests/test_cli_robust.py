@@ -106,6 +106,7 @@ def test_a_second_resume_of_a_run_in_training_is_refused(run, shards, capsys):
         (["--model.net.options.patch_size", "0"], "model.net.options.patch_size = 0: it must be a patch side"),
         (["--model.render.options.tile_size", "0"], "tile_size, chunk and max_elements must be positive"),
         (["--model.optim.impl", "magic"], "unknown optim.impl 'magic'"),
+        (["--distributed.timeout", "0"], "distributed.timeout = 0.0: it must be more than 0 seconds"),
     ],
 )
 def test_values_out_of_range_stop_before_anything_is_written(shards, capsys, tmp_path, flags, message):

@@ -113,6 +113,7 @@ RULES: tuple[Rule, ...] = (
         "-1 (no limit) or 1 or more steps: 0 trains nothing",
         commands=("fit",),
     ),  # fmt: skip
+    Rule("distributed.timeout", positive, "more than 0 seconds"),
     Rule(
         "last_checkpoint.every_n_train_steps",
         at_least_zero,

@@ -280,9 +280,7 @@ class AESplatCLI(LightningCLI):
             trainer = super().instantiate_trainer(**kwargs)
         except MisconfigurationException as err:  # a trainer value Lightning refuses: devices, ...
             raise UserError(f"invalid configuration: trainer: {str(err).strip().splitlines()[0]}") from None
-        timeout = cfg.distributed.timeout
-        if not timeout > 0:
-            raise UserError(f"--distributed.timeout {timeout:g}: give the seconds DDP ranks wait (more than 0)")
+        timeout = cfg.distributed.timeout  # in range: config_checks
         if isinstance(trainer.strategy, DDPStrategy):  # its process group is made when the fit starts
             trainer.strategy._timeout = timedelta(seconds=timeout)
         # stop and SLURM requeue between steps only; a lost DDP rank named
