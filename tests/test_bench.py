@@ -17,7 +17,7 @@ from aesplat.model import build_model, dataset_cameras
 from aesplat.render import render
 from aesplat.train.metrics import psnr
 from aesplat.types import BatchedExample, BatchedViews
-from tests.helpers import SH_DEGREE, identity_views, make_shards, write_tiny_checkpoint
+from tests.helpers import SH_DEGREE, aesplat, identity_views, make_shards, one_line, write_tiny_checkpoint
 
 pytestmark = pytest.mark.filterwarnings("ignore:LPIPS metric unavailable")
 
@@ -322,6 +322,81 @@ def test_bench_command_end_to_end(tmp_path, pretend_gsplat):
     assert (out / "accuracy_vs_time.png").is_file() and (out / "bench.csv").is_file()
     with pytest.raises(SystemExit, match="no shards"):
         main(["--ckpt", str(ckpt), "--data-root", str(tmp_path / "empty"), "--no-progress", "--device", "cpu"])
+
+
+KNOBS = (
+    "sh_degree, context_views, input_size, render_size, keep_fraction, min_opacity, precision, backend, "
+    "tile_size"
+)
+HELP = "(`aesplat bench --help` lists the options)"
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory, shards):
+    """A checkpoint whose run reads ``shards``: a bad argument, not a missing file, is what stops the bench."""
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("bench_run"), data_root=str(shards), image_size=SIZE)
+
+
+# A bad argument of `aesplat bench`, its exit status, the line it gives (less "aesplat bench: ").
+BAD_ARGUMENTS = [
+    (["--repeats", "0"], 1, "--repeats 0: it must be 1 or more"),
+    (["--repeats", "-1"], 1, "--repeats -1: it must be 1 or more"),
+    (["--scenes", "-3"], 1, "--scenes -3: it must be 1 or more"),
+    (["--scenes", "0"], 1, "--scenes 0: it must be 1 or more"),
+    (["--round-scenes", "0"], 1, "--round-scenes 0: it must be 1 or more"),
+    (["--round-scenes", "-2"], 1, "--round-scenes -2: it must be 1 or more"),
+    (["--warmup", "-1"], 1, "--warmup -1: it must be 0 or more"),
+    (["--process-warmup", "-1"], 1, "--process-warmup -1: it must be 0 or more"),
+    (["--threads", "0"], 1, "--threads 0: it must be 1 or more"),
+    (["--image-size", "0"], 1, "--image-size 0: it must be 1 or more pixels"),
+    (["--data-context-views", "1"], 1, "--data-context-views 1: it must be 2 or more"),
+    (["--context-views", "1"], 1, "--context-views 1: each must be a count of 2 or more"),
+    (["--context-views="], 1, "--context-views '': it must list one or more values, each a count of 2 or more"),
+    (["--context-views", "2,x"], 2,
+     f"argument --context-views: '2,x' is not a comma-separated list of whole numbers {HELP}"),
+    (["--knobs", "foo"], 1, f"--knobs foo: each must be one of {KNOBS}"),
+    (["--knobs", ","], 1, f"--knobs '': it must list one or more values, each one of {KNOBS}"),
+    (["--knobs", "render_size,render_size"], 1, "--knobs render_size,render_size: it gives render_size twice"),
+    (["--input-scales", "nan"], 1, "--input-scales nan: each must be a finite number more than 0"),
+    (["--input-scales", "0"], 1, "--input-scales 0: each must be a finite number more than 0"),
+    (["--input-scales", "inf"], 1, "--input-scales inf: each must be a finite number more than 0"),
+    (["--render-scales", "0.5,nan"], 1, "--render-scales 0.5,nan: each must be a finite number more than 0"),
+    (["--render-scales", "-1"], 1, "--render-scales -1: each must be a finite number more than 0"),
+    (["--render-scales", "inf"], 1, "--render-scales inf: each must be a finite number more than 0"),
+    (["--keep-fractions", "0"], 1, "--keep-fractions 0: each must be a fraction in (0, 1]"),
+    (["--keep-fractions", "1.5"], 1, "--keep-fractions 1.5: each must be a fraction in (0, 1]"),
+    (["--keep-fractions", "nan"], 1, "--keep-fractions nan: each must be a fraction in (0, 1]"),
+    (["--min-opacities", "1"], 1, "--min-opacities 1: each must be an opacity in [0, 1)"),
+    (["--min-opacities", "-0.5"], 1, "--min-opacities -0.5: each must be an opacity in [0, 1)"),
+    (["--min-opacities", "nan"], 1, "--min-opacities nan: each must be an opacity in [0, 1)"),
+    (["--precisions", "fp16"], 1, "--precisions fp16: each must be one of fp32, bf16"),
+    (["--precisions", "fp32,fp32"], 1, "--precisions fp32,fp32: it gives fp32 twice"),
+    (["--backends", "foo"], 1, "--backends foo: each must be one of torch, gsplat"),
+    (["--backends", "torch,torch"], 1, "--backends torch,torch: it gives torch twice"),
+    (["--tile-sizes", "nan"], 1, "--tile-sizes nan: each must be a whole number of pixels, 1 or more"),
+    (["--tile-sizes", "0"], 1, "--tile-sizes 0: each must be a whole number of pixels, 1 or more"),
+    (["--tile-sizes", "8.5"], 1, "--tile-sizes 8.5: each must be a whole number of pixels, 1 or more"),
+    (["--tile-sizes", "-8"], 1, "--tile-sizes -8: each must be a whole number of pixels, 1 or more"),
+    (["--tile-sizes", "inf"], 1, "--tile-sizes inf: each must be a whole number of pixels, 1 or more"),
+    (["--tile-sizes", "8,x"], 2,
+     f"argument --tile-sizes: '8,x' is not a comma-separated list of numbers {HELP}"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("bad", "status", "message"), BAD_ARGUMENTS, ids=[" ".join(c[0]) for c in BAD_ARGUMENTS]
+)
+def test_bench_refuses_a_bad_argument_in_one_line_before_any_work(bad, status, message, tiny_ckpt, capsys,
+                                                                   tmp_path):  # fmt: skip
+    """A count, size, scale or name out of range stops `aesplat bench` with one line naming the option, the
+    value given and what it must be; nothing is written (the quick settings keep short a bench that runs)."""
+    quick = ["--scenes", "1", "--repeats", "1", "--process-warmup", "0", "--knobs", "render_size",
+             "--render-scales", "1", "--no-progress", "--device", "cpu"]  # fmt: skip
+    code, err = aesplat(
+        capsys, "bench", "--ckpt", str(tiny_ckpt), "--out", str(tmp_path / "bench"), *quick, *bad
+    )
+    assert (code, one_line(err)) == (status, f"aesplat bench: {message}")
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.gpu

@@ -5,32 +5,96 @@ from __future__ import annotations
 
 import argparse
 import inspect
+import math
+import shlex
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import Any, TypeVar
 
 import torch
 
 from ..commands import HelpFormatter, OneLineParser, resolve_device
 from ..errors import UserError
+from ..render import BACKENDS
 from ..threads import ENV_OVERRIDE, apply_thread_policy
 from ..types import BatchedExample, BatchedViews
 from .report import machine_meta, write_report
 from .run import Bench, contexts_of, each_scene, single_scenes
-from .sweep import KNOB_TITLES, default_sweep
+from .sweep import KNOB_TITLES, PRECISIONS, default_sweep
 from .timing import LoadWatch, busy_warning, other_cores_busy, steady_allocator
 
-
-def _floats(text: str) -> list[float]:
-    return [float(x) for x in text.split(",") if x.strip()]
+T = TypeVar("T")
 
 
-def _ints(text: str) -> list[int]:
-    return [int(x) for x in text.split(",") if x.strip()]
+def _listed(parse: Callable[[str], T], what: str) -> Callable[[str], list[T]]:
+    """An argparse ``type``: comma-separated values, each read by ``parse`` (empty ones skipped); text it cannot
+    read is a command-line error saying the option takes a list of ``what``."""
+
+    def listed(text: str) -> list[T]:
+        try:
+            return [parse(x.strip()) for x in text.split(",") if x.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of {what}") from None
+
+    return listed
 
 
-def _names(text: str) -> list[str]:
-    return [x.strip() for x in text.split(",") if x.strip()]
+_floats = _listed(float, "numbers")
+_ints = _listed(int, "whole numbers")
+_names = _listed(str, "names")
+
+
+def _finite_positive(x: float) -> bool:
+    return math.isfinite(x) and x > 0
+
+
+# What each count, size and list of `aesplat bench` must hold: option -> (the test of one value, what a value
+# must be). A list is tested value by value, and must hold at least one value, each once.
+RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "--image-size": (lambda n: n >= 1, "1 or more pixels"),
+    "--scenes": (lambda n: n >= 1, "1 or more"),
+    "--repeats": (lambda n: n >= 1, "1 or more"),
+    "--round-scenes": (lambda n: n >= 1, "1 or more"),
+    "--warmup": (lambda n: n >= 0, "0 or more"),
+    "--process-warmup": (lambda n: n >= 0, "0 or more"),
+    "--context-views": (lambda n: n >= 2, "a count of 2 or more"),
+    "--data-context-views": (lambda n: n >= 2, "2 or more"),
+    "--knobs": (lambda k: k in KNOB_TITLES, f"one of {', '.join(KNOB_TITLES)}"),
+    "--input-scales": (_finite_positive, "a finite number more than 0"),
+    "--render-scales": (_finite_positive, "a finite number more than 0"),
+    "--keep-fractions": (lambda f: 0 < f <= 1, "a fraction in (0, 1]"),
+    "--min-opacities": (lambda o: 0 <= o < 1, "an opacity in [0, 1)"),
+    "--precisions": (lambda p: p in PRECISIONS, f"one of {', '.join(PRECISIONS)}"),
+    "--backends": (lambda b: b in BACKENDS, f"one of {', '.join(BACKENDS)}"),
+    "--tile-sizes": (lambda t: float(t).is_integer() and t >= 1, "a whole number of pixels, 1 or more"),
+    "--threads": (lambda n: n >= 1, "1 or more"),
+}
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    """A UserError naming the first option of ``RANGES`` whose value is outside its range, the value given and
+    what it must be; nothing when every value is in range (an option left unset is not checked)."""
+
+    def shown(value: Any) -> str:
+        return f"{value:g}" if isinstance(value, float) else str(value)
+
+    for flag, (ok, what) in RANGES.items():
+        value = getattr(args, flag.removeprefix("--").replace("-", "_"))
+        if value is None:
+            continue
+        if not isinstance(value, list):
+            if not ok(value):
+                raise UserError(f"{flag} {shown(value)}: it must be {what}")
+            continue
+        given = shlex.quote(",".join(shown(v) for v in value))
+        if not value:
+            raise UserError(f"{flag} {given}: it must list one or more values, each {what}")
+        if not all(ok(v) for v in value):
+            raise UserError(f"{flag} {given}: each must be {what}")
+        repeated = [v for i, v in enumerate(value) if v in value[:i]]
+        if repeated:
+            raise UserError(f"{flag} {given}: it gives {shown(repeated[0])} twice")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -153,6 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     from ..render import RenderSettings, get_backend
 
     args = build_parser().parse_args(argv)
+    check_arguments(args)  # before anything is read or written
     # The scenes are read in this process. Cores other processes keep busy are left to them: a parallel region
     # whose threads wait for a core times the other work, not the setting.
     allocator = steady_allocator()  # before the model and the scenes take their memory

@@ -22,7 +22,7 @@ from ..render import render
 from ..stats import mean_difference
 from ..train.metrics import psnr, relative_pose_errors, ssim
 from ..types import BatchedExample, BatchedViews, Gaussians
-from .sweep import Point, Setting
+from .sweep import PRECISIONS, Point, Setting
 from .timing import Estimate, Stopwatch, calls_per_round, interleaved, per_round_totals, speedup
 
 
@@ -182,8 +182,8 @@ class Bench:
     def forward_task(self, setting: Setting) -> Callable[[Sequence[int]], list]:
         """One model forward of each of the scenes a call names (indices) at the forward key of ``setting``;
         returns their outputs in that order."""
-        if setting.precision not in ("fp32", "bf16"):
-            raise ValueError(f"precision must be 'fp32' or 'bf16', got {setting.precision!r}")
+        if setting.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {setting.precision!r}")
         bf16 = setting.precision == "bf16"
         inputs = [replace(scene, context=resize_views(scene.context, setting.input_size),
                           target=resize_views(scene.target, setting.input_size))

@@ -7,6 +7,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
+PRECISIONS = ("fp32", "bf16")  # of the model forward: float32, or bfloat16 autocast
+
 
 @dataclass(frozen=True)
 class Setting:
