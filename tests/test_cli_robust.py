@@ -106,7 +106,8 @@ def test_a_second_resume_of_a_run_in_training_is_refused(run, shards, capsys):
         (["--model.net.options.patch_size", "0"], "model.net.options.patch_size = 0: it must be a patch side"),
         (["--model.render.options.tile_size", "0"], "tile_size, chunk and max_elements must be positive"),
         (["--model.optim.impl", "magic"], "unknown optim.impl 'magic'"),
-        (["--distributed.timeout", "0"], "distributed.timeout = 0.0: it must be more than 0 seconds"),
+        (["--distributed.timeout", "0.05"], "distributed.timeout = 0.05: it must be 10 to 604800 seconds"),
+        (["--distributed.timeout", "1e18"], "distributed.timeout = 1e+18: it must be 10 to 604800 seconds"),
     ],
 )
 def test_values_out_of_range_stop_before_anything_is_written(shards, capsys, tmp_path, flags, message):

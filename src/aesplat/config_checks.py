@@ -17,6 +17,7 @@ from typing import Any
 
 from .errors import UserError
 from .geometry.sh import MAX_SH_DEGREE
+from .train.signals import MAX_TIMEOUT, MIN_TIMEOUT
 
 
 @dataclass(frozen=True)
@@ -113,7 +114,12 @@ RULES: tuple[Rule, ...] = (
         "-1 (no limit) or 1 or more steps: 0 trains nothing",
         commands=("fit",),
     ),  # fmt: skip
-    Rule("distributed.timeout", positive, "more than 0 seconds"),
+    Rule(
+        "distributed.timeout",
+        lambda v: _number(v) and MIN_TIMEOUT <= v <= MAX_TIMEOUT,
+        f"{MIN_TIMEOUT:g} to {MAX_TIMEOUT:g} seconds (7 days): every rank must start and join the process "
+        "group within it",
+    ),
     Rule(
         "last_checkpoint.every_n_train_steps",
         at_least_zero,

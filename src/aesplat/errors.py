@@ -42,6 +42,11 @@ class RanksLost(RuntimeError):
     stated in one line that names the rank and its node."""
 
 
+class RanksTooSlow(RuntimeError):
+    """A multi-process run ended because a collective waited longer than ``--distributed.timeout`` for ranks
+    that were alive, stated in one line that names them, where they were, and the fix."""
+
+
 class Stopped(BaseException):
     """The command was stopped by a signal; it exits with 128 + ``signum``. A BaseException, like
     KeyboardInterrupt, so that no ``except Exception`` on the way swallows it and cleanups still run."""
@@ -205,7 +210,7 @@ def run_reporting_user_errors(command: str, fn: Callable[[], T]) -> T:
     try:
         with stopping_on_signals():
             return fn()
-    except (UserError, RanksLost) as err:
+    except (UserError, RanksLost, RanksTooSlow) as err:
         if debug():
             raise
         fail(command, str(err))

@@ -53,7 +53,15 @@ from aesplat.checkpoint import checked_hparams, checkpoint_sections, read_checkp
 from aesplat.commands import OneLineParser
 from aesplat.config_checks import check_config
 from aesplat.data import DataModule
-from aesplat.errors import MissingFileError, RanksLost, Stopped, UserError, check_writable, signal_name
+from aesplat.errors import (
+    MissingFileError,
+    RanksLost,
+    RanksTooSlow,
+    Stopped,
+    UserError,
+    check_writable,
+    signal_name,
+)
 from aesplat.files import check_deletable, remove_partials
 from aesplat.threads import apply_thread_policy
 from aesplat.train import AESplatModule
@@ -61,7 +69,7 @@ from aesplat.train.callbacks import DataRecord, RunCheckpoint, Throughput
 from aesplat.train.checkpoint_io import AtomicCheckpointIO
 from aesplat.train.logger import SteadyWandbLogger
 from aesplat.train.run_dir import FitWrites, lock_run, point_latest, wandb_mode, wandb_run_id
-from aesplat.train.signals import SignalsAtStepBoundary
+from aesplat.train.signals import SignalsAtStepBoundary, end_started_ranks
 
 DEFAULT_RUN_DIR = "outputs/run"
 
@@ -81,8 +89,9 @@ class WandbConfig:
 class DistributedConfig:
     """Multi-process (DDP) training: how long the ranks wait for each other."""
 
-    # seconds a collective waits for every rank before the run ends saying which rank was lost (torch's
-    # default is 30 minutes); raise it where a checkpoint save or a rank's first batch takes minutes
+    # seconds a collective waits for every rank before the run ends saying which rank was lost, or which was
+    # slow (torch's default is 30 minutes); raise it where a checkpoint save or a rank's first batch takes
+    # minutes. 10 s to 7 days: the ranks must also start and join the process group within it
     timeout: float = 300.0
 
 
@@ -118,6 +127,7 @@ class AESplatCLI(LightningCLI):
     # Called when the command fails or stops (a fit that saved no checkpoint takes back its run markers).
     on_failure: list[Callable[[], object]] = []
     signals: SignalsAtStepBoundary | None = None  # of the command under way: says when a DDP rank was lost
+    launcher: object | None = None  # Lightning's, of the command under way: the ranks it started end with it
 
     @staticmethod
     def subcommands() -> dict[str, set[str]]:
@@ -283,6 +293,7 @@ class AESplatCLI(LightningCLI):
         timeout = cfg.distributed.timeout  # in range: config_checks
         if isinstance(trainer.strategy, DDPStrategy):  # its process group is made when the fit starts
             trainer.strategy._timeout = timedelta(seconds=timeout)
+        AESplatCLI.launcher = trainer.strategy.launcher
         # stop and SLURM requeue between steps only; a lost DDP rank named
         AESplatCLI.signals = self.signals = SignalsAtStepBoundary(timeout=timeout)
         trainer.callbacks += [self.signals, DataRecord()]
@@ -497,7 +508,7 @@ def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None
         raise UserError(error)
     for pattern in _EXPECTED_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
-    AESplatCLI.on_failure, AESplatCLI.signals = [], None
+    AESplatCLI.on_failure, AESplatCLI.signals, AESplatCLI.launcher = [], None, None
     try:
         AESplatCLI(
             module_class or AESplatModule,
@@ -510,8 +521,13 @@ def run_lightning(argv: Sequence[str], module_class: type | None = None) -> None
             auto_configure_optimizers=False,
         )
     except BaseException as err:
+        # The ranks this process started first: none may write into the run folder after its cleanup.
+        end_started_ranks(AESplatCLI.launcher)
         for cleanup in AESplatCLI.on_failure:
             cleanup()
-        if AESplatCLI.signals is not None and AESplatCLI.signals.lost:
-            raise RanksLost(AESplatCLI.signals.lost) from err
+        signals = AESplatCLI.signals
+        if signals is not None and signals.lost:
+            raise RanksLost(signals.lost) from err
+        if signals is not None and signals.slow:
+            raise RanksTooSlow(signals.slow) from err
         raise

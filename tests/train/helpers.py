@@ -178,3 +178,25 @@ class HoldUntilStopSignal(Callback):
         deadline = time.monotonic() + self.timeout
         while signals.stop_signal is None and time.monotonic() < deadline:
             time.sleep(0.05)  # the stop signal's handler runs here, in the main thread
+
+
+class SlowRank(Callback):
+    """Global rank ``rank`` sleeps ``seconds`` before training batch ``at``, as a rank whose first batch comes
+    from a cold data cache would wait: slow, not lost (its heartbeat goes on)."""
+
+    def __init__(self, rank: int, seconds: float, at: int = 0) -> None:
+        self.rank, self.seconds, self.at = rank, seconds, at
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx: int) -> None:
+        if trainer.global_rank == self.rank and batch_idx == self.at:
+            time.sleep(self.seconds)
+
+
+class SlowToStart(Callback):
+    """In the rank Lightning starts as local rank ``rank`` (``LOCAL_RANK``), sleep ``seconds`` when the command
+    builds its callbacks: before that rank writes anything or joins the process group, as a rank that imports
+    from a slow file system would start."""
+
+    def __init__(self, rank: int, seconds: float) -> None:
+        if os.environ.get("LOCAL_RANK") == str(rank):
+            time.sleep(seconds)
