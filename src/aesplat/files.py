@@ -48,16 +48,17 @@ def fsync_dir(folder: str | Path) -> None:
             os.close(fd)
 
 
-def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
+def atomic_write(path: str | Path, write: Callable[[BinaryIO], None], mode: int = 0o666) -> Path:
     """Write ``path`` whole or not at all: ``write(f)`` fills a temporary file in the same folder, which is
     fsynced and renamed over ``path``. On any error (a full disk included) or interruption the temporary file
-    is removed and ``path`` keeps its previous content; the error is raised naming ``path``."""
+    is removed and ``path`` keeps its previous content; the error is raised naming ``path``. ``mode``: the new
+    file's permissions, less the umask (0o600: only its owner may read it)."""
     path = Path(path)
     folder = path.parent
     folder.mkdir(parents=True, exist_ok=True)
     tmp = folder / f".{path.name}.{secrets.token_hex(4)}{PARTIAL_SUFFIX}"
     # os.open with 0o666 honours the umask, as a plain open() of the final name would (mkstemp would not).
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, mode)
     try:
         with os.fdopen(fd, "wb") as f:
             try:

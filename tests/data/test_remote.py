@@ -6,6 +6,8 @@ bad bytes."""
 from __future__ import annotations
 
 import multiprocessing
+import os
+import re
 import shutil
 import threading
 import time
@@ -15,43 +17,11 @@ import pytest
 
 from aesplat import cli
 from aesplat.data import DataModule
-from aesplat.data.manifest import read_manifest, sha256
+from aesplat.data.manifest import sha256
 from aesplat.data.remote import DownloadSettings, FetchError, RemoteShards
 from aesplat.errors import UserError
-from tests.helpers import aesplat, common, need, one_line, sample_keys
-from tests.script_loader import load_script
-
-TOKEN = "tok-3f9c1d7e"  # what /auth/ accepts; a test looks for it in everything a run writes
-FAST = DownloadSettings(retries=2, timeout=5.0, backoff=0.05)
-LOADER = {"image_size": 28, "batch_size": 2, "gap_initial": (2, 4), "gap_final": (2, 4), "gap_warmup_steps": 0,
-          "train_batches_per_epoch": 4, "shuffle_buffer": 4, "validate_on_test": True}  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def local_nginx():
-    module = load_script("local_nginx")
-    try:
-        module.nginx_binary()
-    except SystemExit:
-        need(False, "nginx")
-    return module
-
-
-@pytest.fixture(scope="module")
-def served(tmp_path_factory):
-    """Shards of 4 training scenes (one a shard) and 2 test scenes."""
-    from tests.helpers import make_shards
-
-    return make_shards(tmp_path_factory.mktemp("served"), scenes=4, test_scenes=2, seed=1, scenes_per_chunk=1)
-
-
-@pytest.fixture
-def server(local_nginx, served, tmp_path):
-    """An nginx serving a copy of ``served`` (a test may change it), stopped after the test."""
-    root = tmp_path / "root"
-    shutil.copytree(served, root)
-    with local_nginx.Nginx(root, tmp_path / "nginx", token=TOKEN) as nginx:
-        yield nginx
+from tests.data.servers import FAST, LOADER, TOKEN, cached, edit_manifest
+from tests.helpers import aesplat, common, one_line, sample_keys
 
 
 def shard_gets(server) -> list[tuple[str, int, str]]:
@@ -71,8 +41,14 @@ def test_a_url_gives_the_folder_s_batches_and_a_verified_shard_is_reused(server,
     assert fetched == sorted(f"/{p.relative_to(server.root)}" for p in server.root.glob("*/*.tar"))
     cache = tmp_path / "cache"
     for uri in fetched:
-        assert (cache / uri[1:]).read_bytes() == (server.root / uri[1:]).read_bytes()
+        assert cached(cache, server.root, uri[1:]).read_bytes() == (server.root / uri[1:]).read_bytes()
+    assert sorted(p.name for p in (cache / "shards").glob("*.tar")) == sorted(
+        cached(cache, server.root, uri[1:]).name for uri in fetched
+    )
     assert not list(cache.rglob("*.part"))
+    # The cache is its user's alone: folders 0700, files 0600.
+    assert {oct(p.stat().st_mode & 0o777) for p in [cache, *cache.rglob("*")] if p.is_dir()} == {"0o700"}
+    assert {oct(p.stat().st_mode & 0o777) for p in cache.rglob("*") if p.is_file()} == {"0o600"}
 
     again = DataModule(root=server.url, cache_dir=str(cache), num_workers=2, **LOADER)
     assert [sample_keys(b) for b in again.train_dataloader()] == want
@@ -91,26 +67,30 @@ def test_a_rank_fetches_only_the_shards_it_reads(server, tmp_path):
 
 def test_a_changed_shard_in_a_new_manifest_is_fetched_again(server, tmp_path):
     first = RemoteShards(server.url, tmp_path / "cache", FAST)
-    shard = first.open() / "test" / "test-000000.tar"
-    first.fetch(shard)
+    listing = first.open()
+    shard = listing / "test" / "test-000000.tar"
+    old = Path(first.fetch(shard)).read_bytes()
+    first.fetch(listing / "test" / "test-000001.tar")
     # A new conversion on the server: other bytes, another SHA-256 in its manifest.
     served = server.root / "test" / "test-000000.tar"
     served.write_bytes(served.read_bytes() + b"\0" * 10240)
-    manifest = server.root / "manifest.json"
-    manifest.write_text(manifest.read_text().replace(read_manifest(server.root).splits["test"].shards[0].sha256,
-                                                     sha256(served)))  # fmt: skip
+    edit_manifest(server.root, "test/test-000000.tar", sha256=sha256(served), bytes=served.stat().st_size)
     second = RemoteShards(server.url, tmp_path / "cache", FAST)
-    second.open()
-    assert Path(second.fetch(shard)).read_bytes() == served.read_bytes()
-    assert [uri for uri, _, _ in shard_gets(server)] == ["/test/test-000000.tar"] * 2
+    listing2 = second.open()
+    assert listing2 != listing  # a listing of its own; the first one's is unchanged
+    assert Path(second.fetch(listing2 / "test" / "test-000000.tar")).read_bytes() == served.read_bytes()
+    assert Path(first.fetch(shard)).read_bytes() == old
+    second.fetch(listing2 / "test" / "test-000001.tar")  # the same bytes in both: the copy there is used
+    gets = [uri for uri, _, _ in shard_gets(server)]
+    assert gets == ["/test/test-000000.tar", "/test/test-000001.tar", "/test/test-000000.tar"]
 
 
 def test_a_cut_download_resumes_with_a_range_request(server, tmp_path):
     remote = RemoteShards(server.url, tmp_path / "cache", FAST)
     shard = remote.open() / "train" / "train-000001.tar"
     whole = (server.root / "train" / "train-000001.tar").read_bytes()
-    shard.parent.mkdir(parents=True)
-    shard.with_name(shard.name + ".part").write_bytes(whole[:10_000])
+    part = cached(tmp_path / "cache", server.root, "train/train-000001.tar").with_suffix(".tar.part")
+    part.write_bytes(whole[:10_000])
     assert Path(remote.fetch(shard)).read_bytes() == whole
     assert shard_gets(server) == [("/train/train-000001.tar", 206, "bytes=10000-")]
 
@@ -120,7 +100,8 @@ def test_a_server_stopped_in_the_middle_of_a_shard_is_resumed_when_it_is_back(lo
     with local_nginx.Nginx(served, tmp_path / "nginx", slow_rate="12k") as server:
         remote = RemoteShards(server.url + "/slow", tmp_path / "cache", DownloadSettings(6, 5.0, 0.2))
         shard = remote.open() / "train" / "train-000002.tar"
-        part = shard.with_name(shard.name + ".part")
+        target = cached(tmp_path / "cache", served, "train/train-000002.tar")
+        part = target.with_suffix(".tar.part")
         done: list = []
         fetching = threading.Thread(target=lambda: done.append(remote.fetch(shard)))
         fetching.start()
@@ -132,13 +113,13 @@ def test_a_server_stopped_in_the_middle_of_a_shard_is_resumed_when_it_is_back(lo
         time.sleep(0.3)
         server.start()
         fetching.join(30)
-        assert done == [str(shard)]
-    assert shard.read_bytes() == (served / "train" / "train-000002.tar").read_bytes()
+        assert done == [str(target)]
+    assert target.read_bytes() == (served / "train" / "train-000002.tar").read_bytes()
     # nginx logs a request when it ends: the one cut by the stop is not there; the next resumed it.
     (uri, status, ranged), *later = shard_gets(server)
     resumed_from = int(ranged.removeprefix("bytes=").removesuffix("-"))
     assert (uri, status) == ("/slow/train/train-000002.tar", 206) and later == []
-    assert 0 < cut <= resumed_from < shard.stat().st_size
+    assert 0 < cut <= resumed_from < target.stat().st_size
 
 
 def _fetch_in_process(remote: RemoteShards, shard: Path, out) -> None:
@@ -157,8 +138,9 @@ def test_two_processes_wanting_one_shard_download_it_once(local_nginx, served, t
         results = [out.get(timeout=30) for _ in workers]
         for w in workers:
             w.join(10)
-    assert results == [str(shard)] * 2 and [w.exitcode for w in workers] == [0, 0]
-    assert shard.read_bytes() == (served / "train" / "train-000000.tar").read_bytes()
+    target = cached(tmp_path / "cache", served, "train/train-000000.tar")
+    assert results == [str(target)] * 2 and [w.exitcode for w in workers] == [0, 0]
+    assert target.read_bytes() == (served / "train" / "train-000000.tar").read_bytes()
     assert [uri for uri, _, _ in shard_gets(server)] == ["/slow/train/train-000000.tar"]
 
 
@@ -212,7 +194,7 @@ def test_a_shard_with_other_bytes_than_the_manifest_is_fetched_twice_then_refuse
         f"shard train/train-000000.tar fetched from {url} does not match the manifest (SHA-256 "
     )
     assert [u for u, _, _ in shard_gets(server) if u.endswith("-000000.tar")] == ["/train/train-000000.tar"] * 2
-    assert not list((tmp_path / "cache" / "train").glob("train-000000.tar*[!k]"))  # no copy, no part, no marker
+    assert not list((tmp_path / "cache" / "shards").glob("*.tar*[!k]"))  # no copy, no part
 
 
 def test_a_throttled_server_completes_and_a_stalled_one_times_out_in_one_line(server, tmp_path):
@@ -229,7 +211,7 @@ def test_a_throttled_server_completes_and_a_stalled_one_times_out_in_one_line(se
         "answer or data for 0.5 s (data.download_timeout); check the server, or raise data.download_retries / "
         "data.download_timeout"
     )
-    assert not shard.exists()
+    assert not cached(tmp_path / "crawl", server.root, "test/test-000001.tar").exists()
 
 
 def test_a_server_that_stays_down_fails_in_one_line_after_the_retries(server, tmp_path):
@@ -247,11 +229,13 @@ def test_a_server_that_stays_down_fails_in_one_line_after_the_retries(server, tm
 def test_a_cache_that_cannot_be_written_is_one_line(server, tmp_path):
     remote = RemoteShards(server.url, tmp_path / "cache", FAST)
     shard = remote.open() / "train" / "train-000000.tar"
-    (tmp_path / "cache" / "train").write_text("a file where the split's folder goes")
+    shutil.rmtree(tmp_path / "cache" / "shards")
+    (tmp_path / "cache" / "shards").write_text("a file where the shards' folder goes")
+    target = cached(tmp_path / "cache", server.root, "train/train-000000.tar")
     with pytest.raises(FetchError) as err:
         remote.fetch(shard)
-    assert one_line(str(err.value)) == (
-        f"shard train/train-000000.tar from {server.url}: {tmp_path / 'cache' / 'train'}: File exists"
+    assert (
+        one_line(str(err.value)) == f"shard train/train-000000.tar from {server.url}: {target}: Not a directory"
     )
 
 
@@ -290,15 +274,26 @@ def test_a_url_that_cannot_be_used_is_refused_in_one_line(root, words, capsys, t
     assert not (tmp_path / "run").exists()
 
 
-def test_download_settings_out_of_range_are_refused_before_anything_is_fetched(capsys, tmp_path):
-    with pytest.raises(UserError, match="data.download_timeout = 0: it must be more than 0 seconds"):
-        DataModule(root="http://127.0.0.1/x", download_timeout=0)
-    with pytest.raises(UserError, match="data.download_retries = -1: it must be 0 or more tries"):
-        DataModule(root="http://127.0.0.1/x", download_retries=-1)
+@pytest.mark.parametrize(
+    "option, value, must",
+    [
+        ("download_timeout", "0", "more than 0 and at most 86400 seconds"),
+        ("download_timeout", "1e18", "more than 0 and at most 86400 seconds"),  # beyond a socket's timeout
+        ("download_retries", "-1", "0 to 100 tries"),
+        ("download_retries", "5000", "0 to 100 tries"),  # its doubling wait would overflow
+        ("download_backoff", "-1", "0 to 3600 seconds"),
+        ("download_backoff", "1e300", "0 to 3600 seconds"),
+    ],
+)
+def test_download_settings_out_of_range_are_refused_before_anything_is_fetched(option, value, must, capsys,
+                                                                               tmp_path):  # fmt: skip
+    number = float(value) if option != "download_retries" else int(value)
+    with pytest.raises(UserError, match=re.escape(f"data.{option} = {number!r}: it must be {must}")):
+        DataModule(root="http://127.0.0.1/x", **{option: number})
     run_dir = tmp_path / "run"
-    code, err = aesplat(capsys, "fit", *common("http://127.0.0.1:9/x", run_dir), "--data.download_backoff=-1")
+    code, err = aesplat(capsys, "fit", *common("http://127.0.0.1:9/x", run_dir), f"--data.{option}={value}")
     assert code == 1 and one_line(err) == (
-        "aesplat fit: invalid configuration: data.download_backoff = -1.0: it must be 0 or more seconds"
+        f"aesplat fit: invalid configuration: data.{option} = {number!r}: it must be {must}"
     )
     assert not run_dir.exists()
 
@@ -318,5 +313,8 @@ def test_a_fit_from_a_url_trains_and_saves_no_credential(server, tmp_path, monke
     written = [p for p in run_dir.rglob("*") if p.is_file()]
     assert written and not [p for p in written if TOKEN.encode() in p.read_bytes()]
     assert TOKEN not in err + out
-    cache = next((tmp_path / "tmp" / "aesplat-shards").iterdir())
-    assert sorted(p.name for p in (cache / "train").glob("*.tar")) == [f"train-00000{i}.tar" for i in range(4)]
+    cache = tmp_path / "tmp" / f"aesplat-shards-{os.geteuid()}"
+    names = [f"train/train-00000{i}.tar" for i in range(4)]
+    assert {p.name for p in (cache / "shards").glob("*.tar")} >= {
+        cached(cache, server.root, n).name for n in names
+    }

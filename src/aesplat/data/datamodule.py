@@ -25,10 +25,10 @@ from ..errors import UserError, ignore_stop_signals_in_worker, stop_signals_bloc
 from ..types import StepTracker
 from .curriculum import GapCurriculum
 from .decode import StreamConfig
-from .manifest import SceneRef, SplitRecord, partition, read_manifest, training_scenes
+from .manifest import SceneRef, SplitRecord, data_digest, partition, read_manifest, training_scenes
 from .manifest import find_shards as find_listed_shards
 from .manifest import has_split as split_listed
-from .remote import DownloadSettings, RemoteShards, is_url, manifest_folder
+from .remote import DownloadSettings, FetchError, RemoteShards, is_url, manifest_folder
 from .sampler import ContextCount, ViewSampler
 from .stream import COUNTERS, EvalStream, TrainStream, new_counters
 
@@ -94,11 +94,15 @@ class DataModule(L.LightningDataModule):
             read from the shard when picked).
         seed: base seed of the training streams (and of the fixed pools).
         cache_dir: where shards fetched from a URL ``root`` are kept, verified, for later runs (None:
-            ``$TMPDIR/aesplat-shards/<hash of the URL>``, or under /tmp); nothing is evicted.
+            ``$TMPDIR/aesplat-shards-<user id>``, or under /tmp): a folder of yours that only you can write
+            (made 0700 when missing); nothing is evicted.
         download_retries: further tries of a download that failed in a way another try may mend (a cut
             connection, a timeout, HTTP 5xx or 429); a cut download resumes where it stopped.
-        download_timeout: seconds to connect, and at most between two pieces of data, before a try fails.
+        download_timeout: seconds to connect, and at most between two pieces of data, before a try fails; a
+            try also fails after this many seconds plus as many again for each megabyte received.
         download_backoff: seconds before the first retry, doubling with each further one.
+        allow_other_data: resume a checkpoint (``--ckpt_path``) on data whose manifest lists other shards than
+            the data it was trained on (refused otherwise).
     """
 
     def __init__(
@@ -129,6 +133,7 @@ class DataModule(L.LightningDataModule):
         download_retries: int = 5,
         download_timeout: float = 60.0,
         download_backoff: float = 1.0,
+        allow_other_data: bool = False,
     ) -> None:
         super().__init__()
         settings = {"image_size": image_size, "batch_size": batch_size, "eval_batch_size": eval_batch_size,
@@ -176,6 +181,8 @@ class DataModule(L.LightningDataModule):
         self.validate_on_test = validate_on_test
         self.shuffle_buffer = shuffle_buffer
         self.seed = seed
+        self.allow_other_data = allow_other_data
+        self.data_sha256: str | None = None  # what the manifest lists (data_digest), once the ranks agreed
         self.step_tracker = StepTracker()
         self._counters = {split: new_counters(num_workers) for split in ("train", "val", "test")}
         self._rank: int | None = None
@@ -193,6 +200,39 @@ class DataModule(L.LightningDataModule):
         if self.trainer is not None and self._rank is None:
             self._rank, self._world_size = self.trainer.global_rank, self.trainer.world_size
             self.step_tracker.set(max(self.step_tracker.get(), self.trainer.global_step))
+            self._agree_on_data()
+
+    def _agree_on_data(self) -> None:
+        """Make every rank read one data set: for a URL, rank 0 fetches the manifest and hands its bytes to the
+        others (a re-upload between two ranks' fetches cannot split them); for a folder, the ranks compare what
+        their manifests list (each node may hold its own copy). Every rank then stops with the same line, or
+        none does."""
+        if self.remote is not None and self._shard_folder is None:
+            sent: tuple[bytes | None, str | None] = (None, None)
+            if self.rank == 0:
+                try:
+                    sent = (self.remote.fetch_manifest(), None)
+                except UserError as err:
+                    sent = (None, str(err))
+            data, error = _broadcast(sent)
+            if error is not None:
+                raise FetchError(error)
+            self._shard_folder = self.remote.open(data)
+        try:
+            manifest, error = read_manifest(self.shard_folder()), None
+        except UserError as err:
+            manifest, error = None, str(err)
+        self.data_sha256 = None if manifest is None else data_digest(manifest)
+        seen = _all_gather((self.data_sha256, error))
+        for rank, (_, error) in enumerate(seen):
+            if error is not None:
+                raise UserError(error if len(seen) == 1 else f"rank {rank}: {error}")
+        other = [rank for rank, (digest, _) in enumerate(seen) if digest != seen[0][0]]
+        if other:
+            raise UserError(
+                f"ranks {', '.join(map(str, other))} read other data than rank 0: the manifest.json of "
+                f"{self.root} lists other shards on their nodes; give every node the same copy of the shards"
+            )
 
     @property
     def rank(self) -> int:
@@ -205,9 +245,19 @@ class DataModule(L.LightningDataModule):
     # ------------------------------------------------------------------------------------------- curriculum
 
     def state_dict(self) -> dict[str, Any]:
-        return {"global_step": self.step_tracker.get(), "seed": self.seed}
+        return {"global_step": self.step_tracker.get(), "seed": self.seed, "data_sha256": self.data_sha256}
 
     def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Restore the step and seed of a checkpoint; a training resumed on other data than the checkpoint's
+        (another manifest digest, :func:`data_digest`) is refused unless ``allow_other_data``."""
+        saved = state_dict.get("data_sha256")
+        fitting = self.trainer is not None and self.trainer.state.fn == "fit"
+        if fitting and saved and self.data_sha256 and saved != self.data_sha256 and not self.allow_other_data:
+            raise UserError(
+                f"the checkpoint was trained on other data than {self.root} holds now (its manifest lists "
+                f"other shards: {self.data_sha256[:12]}…, the checkpoint's {saved[:12]}…): resume on the data "
+                "it was trained on, or pass --data.allow_other_data true to go on with these"
+            )
         self.step_tracker.set(int(state_dict["global_step"]))
         self.seed = int(state_dict.get("seed", self.seed))
 
@@ -363,6 +413,24 @@ class DataModule(L.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self._loader(self.eval_dataset("test"))
+
+
+def _broadcast(obj: Any) -> Any:
+    """Rank 0's ``obj`` on every rank (``obj`` itself outside a process group)."""
+    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+        return obj
+    box = [obj]
+    torch.distributed.broadcast_object_list(box, src=0)
+    return box[0]
+
+
+def _all_gather(obj: Any) -> list[Any]:
+    """Every rank's ``obj``, by rank (``[obj]`` outside a process group)."""
+    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+        return [obj]
+    out: list[Any] = [None] * torch.distributed.get_world_size()
+    torch.distributed.all_gather_object(out, obj)
+    return out
 
 
 def start_worker(worker_id: int, rank: int = 0) -> None:

@@ -10,10 +10,13 @@ line naming the fix, never a traceback or an empty run.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
+import re
 import tarfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,12 +40,14 @@ def sha256(path: Path) -> str:
 
 @dataclass(frozen=True)
 class ShardRecord:
-    """One shard of a split: its file name, checksum, and (training shards) its scenes' frame counts."""
+    """One shard of a split: its file name, checksum (lower case), (training shards) its scenes' frame counts,
+    and its size in bytes (None in manifests that do not give it)."""
 
     shard: str
     sha256: str | None
     samples: int = 0
     scene_frames: dict[str, int] = field(default_factory=dict)
+    size: int | None = None
 
 
 @dataclass(frozen=True)
@@ -76,27 +81,80 @@ def _damaged(path: Path, why: str) -> UserError:
                      "(finished shards are kept)")  # fmt: skip
 
 
-def _split(path: Path, name: str, entry: Any, version: int) -> SplitRecord:
+# What a manifest may name: a split is a folder, a shard a file in it, both in the converter's own characters
+# (letters, digits, ``.``, ``_``, ``-``; never ``/``, never a leading ``.``), so that no name read from a
+# manifest, a server's included, reaches outside the shard folder.
+SPLIT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
+SHARD_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,195}\.tar")
+DIGEST = re.compile(r"[0-9a-fA-F]{64}")
+
+
+def _whole(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def _split(name: str, entry: Any, version: int, damaged: Callable[[str], UserError]) -> SplitRecord:
     if not isinstance(entry, dict) or not isinstance(entry.get("shards"), list):
-        raise _damaged(path, f"split {name!r} has no list of shards")
+        raise damaged(f"split {name!r} has no list of shards")
     layout = entry.get("layout", "samples") if version >= 2 else "samples"
     if layout not in LAYOUTS:
-        raise _damaged(path, f"split {name!r} has an unknown layout {layout!r}")
+        raise damaged(f"split {name!r} has an unknown layout {layout!r}")
     shards = []
     for item in entry["shards"]:
         if not isinstance(item, dict) or not isinstance(item.get("shard"), str):
-            raise _damaged(path, f"split {name!r} lists a shard without a file name")
+            raise damaged(f"split {name!r} lists a shard without a file name")
+        shard = item["shard"]
+        if not SHARD_NAME.fullmatch(shard):
+            raise damaged(f"split {name!r} lists the shard {shard[:80]!r}, which is not a file name of "
+                          "letters, digits, '.', '_' and '-' ending in .tar")  # fmt: skip
+        digest, size = item.get("sha256"), item.get("bytes")
+        if digest is not None and not (isinstance(digest, str) and DIGEST.fullmatch(digest)):
+            raise damaged(f"split {name!r}: shard {shard} has the sha256 {str(digest)[:80]!r}, not 64 "
+                          "hexadecimal digits")  # fmt: skip
+        if size is not None and not _whole(size):
+            raise damaged(
+                f"split {name!r}: shard {shard} has the size {str(size)[:80]!r}, not a number of bytes"
+            )
+        if not _whole(item.get("samples", 0)):
+            raise damaged(f"split {name!r}: shard {shard} has a malformed count of samples")
         frames = item.get("scene_frames") or {}
-        if not isinstance(frames, dict) or not all(isinstance(v, int) for v in frames.values()):
-            raise _damaged(path, f"split {name!r}: shard {item['shard']} has malformed scene_frames")
-        shards.append(ShardRecord(item["shard"], item.get("sha256"), int(item.get("samples", 0)), frames))
+        if not isinstance(frames, dict) or not all(_whole(v) for v in frames.values()):
+            raise damaged(f"split {name!r}: shard {shard} has malformed scene_frames")
+        shards.append(ShardRecord(shard, digest and digest.lower(), item.get("samples", 0), frames, size))
+    if len({s.shard for s in shards}) < len(shards):
+        raise damaged(f"split {name!r} lists a shard twice")
     samples = entry.get("evaluation_samples") if version >= 2 else None
     targets: dict[int, int] = {}
     for sample in samples.values() if isinstance(samples, dict) else ():
         if not isinstance(sample, dict) or not isinstance(sample.get("target"), list):
-            raise _damaged(path, f"split {name!r} lists an evaluation sample without targets")
+            raise damaged(f"split {name!r} lists an evaluation sample without targets")
         targets[len(sample["target"])] = targets.get(len(sample["target"]), 0) + 1
-    return SplitRecord(layout, shards, int(entry.get("context_views", 2)) if version >= 2 else 2, targets)
+    context_views = entry.get("context_views", 2) if version >= 2 else 2
+    if not _whole(context_views) or context_views < 1:
+        raise damaged(f"split {name!r} has a malformed number of context views")
+    return SplitRecord(layout, shards, context_views, targets)
+
+
+def parse_manifest(text: str | bytes, where: str, damaged: Callable[[str], UserError]) -> Manifest:
+    """A manifest's text as a :class:`Manifest`, every name, digest and count checked; ``where`` names it in
+    messages, ``damaged(why)`` is the error for a malformed one."""
+    try:
+        data = json.loads(text)
+    except (UnicodeDecodeError, ValueError, RecursionError) as err:  # ValueError: JSON's, and overlong numbers
+        raise damaged(f"not valid JSON: {str(err)[:200]}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("splits"), dict):
+        raise damaged("no `splits` object")
+    version = data.get("version", 1)
+    if not isinstance(version, int) or not 1 <= version <= MANIFEST_VERSION:
+        raise UserError(f"{where} has version {str(version)[:40]!r}; this aesplat reads versions 1 to "
+                        f"{MANIFEST_VERSION}: update aesplat or convert the source again")  # fmt: skip
+    for name in data["splits"]:
+        if not SPLIT_NAME.fullmatch(name):
+            raise damaged(f"the split {name[:80]!r} is not a folder name of letters, digits, '.', '_' and '-'")
+    splits = {name: _split(name, entry, version, damaged) for name, entry in data["splits"].items()}
+    source = data.get("source")  # quoted in messages: one printable line or nothing
+    source = source if isinstance(source, str) and source.isprintable() and len(source) < 300 else "SRC"
+    return Manifest(version, source, splits, data)
 
 
 def read_manifest(root: str | Path) -> Manifest | None:
@@ -106,17 +164,19 @@ def read_manifest(root: str | Path) -> Manifest | None:
     if not path.is_file():
         return None
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise _damaged(path, f"not valid JSON: {err}") from None
-    if not isinstance(data, dict) or not isinstance(data.get("splits"), dict):
-        raise _damaged(path, "no `splits` object")
-    version = data.get("version", 1)
-    if not isinstance(version, int) or not 1 <= version <= MANIFEST_VERSION:
-        raise UserError(f"{path} has version {version!r}; this aesplat reads versions 1 to {MANIFEST_VERSION}: "
-                        "update aesplat or convert the source again")  # fmt: skip
-    splits = {name: _split(path, name, entry, version) for name, entry in data["splits"].items()}
-    return Manifest(version, str(data.get("source", "SRC")), splits, data)
+        text = path.read_bytes()
+    except OSError as err:
+        raise _damaged(path, f"unreadable: {err.strerror or err}") from None
+    return parse_manifest(text, str(path), functools.partial(_damaged, path))
+
+
+def data_digest(manifest: Manifest) -> str:
+    """The SHA-256 of what ``manifest`` says the data are: every split's shards by name and SHA-256 (not its
+    counts or dates), to tell whether two runs, or two ranks, read the same data."""
+    lines = sorted(
+        f"{name}/{s.shard} {s.sha256}" for name, split in manifest.splits.items() for s in split.shards
+    )
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest()
 
 
 def has_split(root: str | Path, split: str) -> bool:
