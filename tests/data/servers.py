@@ -35,12 +35,21 @@ def cached(cache: Path, root: Path, name: str) -> Path:
     return cache / "shards" / f"{record(root, name).sha256}.tar"
 
 
+def manifest_of(root: Path) -> dict:
+    """``root/manifest.json`` as JSON."""
+    return json.loads((root / "manifest.json").read_text())
+
+
+def write_manifest(root: Path, manifest: dict) -> None:
+    (root / "manifest.json").write_text(json.dumps(manifest))
+
+
 def edit_manifest(root: Path, name: str, **fields) -> None:
     """Set ``fields`` of shard ``name``'s entry in ``root/manifest.json`` (as a new conversion would)."""
-    manifest = json.loads((root / "manifest.json").read_text())
+    manifest = manifest_of(root)
     split, shard = name.split("/")
     next(e for e in manifest["splits"][split]["shards"] if e["shard"] == shard).update(fields)
-    (root / "manifest.json").write_text(json.dumps(manifest))
+    write_manifest(root, manifest)
 
 
 def logged(nginx, suffix: str, at_least: int = 1) -> list[str]:

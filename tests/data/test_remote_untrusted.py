@@ -5,7 +5,6 @@ written outside the cache, a traceback, a hang or a run on other data than it sa
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import shutil
@@ -32,22 +31,16 @@ from tests.data.servers import (
     endless,
     headers,
     logged,
+    manifest_of,
     once,
     record,
     self_signed,
     trickle,
+    write_manifest,
 )
 from tests.helpers import aesplat, common, need, one_line, tree
 
 ONE_TRY = DownloadSettings(retries=0, timeout=5.0, backoff=0.0)
-
-
-def manifest_of(root: Path) -> dict:
-    return json.loads((root / "manifest.json").read_text())
-
-
-def write_manifest(root: Path, manifest: dict) -> None:
-    (root / "manifest.json").write_text(json.dumps(manifest))
 
 
 def refusal(server, tmp_path: Path) -> str:

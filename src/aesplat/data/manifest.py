@@ -14,6 +14,7 @@ import functools
 import hashlib
 import json
 import logging
+import os
 import re
 import tarfile
 from collections.abc import Callable
@@ -30,9 +31,12 @@ CONVERT = "python data_prep/to_shards.py"
 log = logging.getLogger("aesplat.data")
 
 
-def sha256(path: Path) -> str:
+def sha256(path: Path, follow_links: bool = True) -> str:
+    """The SHA-256 of the file ``path``; with ``follow_links`` False, of that file itself and never of one a
+    link there leads to (``OSError`` for a link)."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    flags = os.O_RDONLY | os.O_CLOEXEC | (0 if follow_links else os.O_NOFOLLOW)
+    with os.fdopen(os.open(path, flags), "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()

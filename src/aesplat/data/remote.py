@@ -49,7 +49,7 @@ from urllib.parse import urlsplit
 
 from ..errors import UserError, os_error_line
 from ..files import atomic_write
-from .manifest import Manifest, ShardRecord, parse_manifest
+from .manifest import Manifest, ShardRecord, parse_manifest, sha256
 
 log = logging.getLogger("aesplat.data")
 
@@ -294,6 +294,7 @@ class RemoteShards:
         import requests
 
         timeout = self.settings.timeout
+        no_answer = f"no answer within {2 * timeout:g} s (twice data.download_timeout)"
         with _answer_within(2 * timeout) as late:
             try:
                 response = self.session().get(url, headers=headers, stream=True, timeout=(timeout, timeout))
@@ -302,11 +303,11 @@ class RemoteShards:
                 if final:
                     raise FetchError(f"{what} {url}: {final}") from None
                 if late:
-                    raise _Retry(f"no answer within {2 * timeout:g} s (twice data.download_timeout)") from None
+                    raise _Retry(no_answer) from None
                 raise _Retry(_why(err, timeout)) from None
         if late:  # cut in its headers: what came is not the answer
             response.close()
-            raise _Retry(f"no answer within {2 * timeout:g} s (twice data.download_timeout)")
+            raise _Retry(no_answer)
         if response.status_code in RETRY_STATUS:
             response.close()
             raise _Retry(f"HTTP {response.status_code}")
@@ -351,10 +352,10 @@ class RemoteShards:
             with self._get(url, MANIFEST) as response:
                 if response.status_code != 200:
                     raise self._final(response.status_code, MANIFEST, url)
-                if _length(response.headers.get("Content-Length")) > MANIFEST_MAX_BYTES:
+                expected = _length(response.headers.get("Content-Length"))
+                if expected > MANIFEST_MAX_BYTES:
                     raise too_long()
                 size = self._read(response, start, 0, body.extend, MANIFEST_MAX_BYTES, too_long)
-                expected = _length(response.headers.get("Content-Length"))
                 if 0 <= expected != size:
                     raise _Retry(f"the connection ended after {size} of {expected} bytes")
             return bytes(body)
@@ -390,7 +391,8 @@ class RemoteShards:
         key = hashlib.sha256(f"{self.url}\n{digest}".encode()).hexdigest()[:32]
         try:
             self._prepare_cache()
-            folder = _own_folder(self.cache / "sets" / key, "the cache")
+            folder = self.cache / "sets" / key
+            _own_folder(folder, "the cache")
             if not (folder / "manifest.json").is_file():
                 atomic_write(folder / "manifest.json", lambda f: f.write(data), mode=0o600)
         except OSError as err:
@@ -409,14 +411,12 @@ class RemoteShards:
             self.cache = Path(os.path.realpath(self.cache))
         base = self.cache
         base.parent.mkdir(parents=True, exist_ok=True)
-        _own_folder(base, "data.cache_dir" if self.named_cache else "the default cache")
-        mode = stat.S_IMODE(os.lstat(base).st_mode)
-        self.private = not mode & 0o022
-        sets = _own_folder(base / "sets", "the cache")
-        self.shards = _own_folder(base / "shards", "the cache")
-        for folder in (sets, self.shards):
-            self.private = self.private and not stat.S_IMODE(os.lstat(folder).st_mode) & 0o022
+        self.private = _own_folder(base, "data.cache_dir" if self.named_cache else "the default cache")
+        self.shards = base / "shards"
+        for folder in (base / "sets", self.shards):
+            self.private = _own_folder(folder, "the cache") and self.private
         if not self.private:
+            mode = stat.S_IMODE(os.lstat(base).st_mode)
             log.warning("the cache %s can be written by other users (mode %o): each process hashes every shard "
                         "before it uses it; give data.cache_dir a folder only you can write to skip that", base,
                         mode)  # fmt: skip
@@ -453,7 +453,7 @@ class RemoteShards:
             return False
         if self.private or record.sha256 in self._hashed:
             return True
-        if _sha256(target) != record.sha256:
+        if sha256(target, follow_links=False) != record.sha256:
             return False
         self._hashed.add(record.sha256)
         return True
@@ -472,7 +472,7 @@ class RemoteShards:
             except FetchError:  # final: what it holds is of no use to a later try
                 part.unlink(missing_ok=True)
                 raise
-            got = _sha256(part)
+            got = sha256(part, follow_links=False)
             if got == record.sha256:
                 break
             part.unlink()
@@ -656,15 +656,6 @@ def _why(err: Exception, timeout: float) -> str:
     return f"the connection failed ({type(err).__name__})"
 
 
-def _sha256(path: Path) -> str:
-    """The SHA-256 of the file ``path`` (not of a file a link there leads to)."""
-    h = hashlib.sha256()
-    with os.fdopen(os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC), "rb") as f:
-        for block in iter(functools.partial(f.read, CHUNK), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _owner(uid: int) -> str:
     import pwd
 
@@ -674,9 +665,10 @@ def _owner(uid: int) -> str:
         return f"uid {uid}"
 
 
-def _own_folder(folder: Path, named: str) -> Path:
-    """``folder``, made (0700) when missing, or one line (:class:`UserError`) when it is a link, not a folder,
-    or another user's: shards planted there would be read as verified."""
+def _own_folder(folder: Path, named: str) -> bool:
+    """Make ``folder`` (0700) when missing, or check the one there: one line (:class:`UserError`) when it is a
+    link, not a folder, or another user's (shards planted there would be read as verified). Whether only this
+    user can write it."""
     try:
         os.mkdir(folder, 0o700)
     except FileExistsError:
@@ -694,7 +686,7 @@ def _own_folder(folder: Path, named: str) -> Path:
             f"{named} {folder} belongs to {_owner(st.st_uid)}, not to you: shards another user put there would "
             "be read as yours; set data.cache_dir to a folder of your own"
         )
-    return folder
+    return not stat.S_IMODE(st.st_mode) & 0o022
 
 
 @contextmanager
