@@ -103,14 +103,15 @@ def merge(base: dict, over: dict) -> dict:
     return base
 
 
-def read_config(source: Path, variant: str) -> tuple[dict, dict]:
-    """NAS3R's encoder settings and the rest of the experiment's config, read from its YAML files."""
+def read_config(source: Path, variant: str, experiment: str = "re10k") -> tuple[dict, dict]:
+    """NAS3R's encoder settings and the rest of the experiment's config, read from its YAML files
+    (``config/experiment/nas3r/<variant>/<experiment>.yaml``: re10k, or re10k-I for the intrinsics variant)."""
     conf = source / "config"
 
     def load(path: Path) -> dict:
         return yaml.safe_load(path.read_text()) or {}
 
-    experiment = load(conf / "experiment" / "nas3r" / variant / "re10k.yaml")
+    experiment = load(conf / "experiment" / "nas3r" / variant / f"{experiment}.yaml")
     choices = {k: v for d in experiment.get("defaults", []) if isinstance(d, dict) for k, v in d.items()}
     encoder_name = choices.get("override /model/encoder", "nas3r")
     encoder = load(conf / "model" / "encoder" / f"{encoder_name}.yaml")

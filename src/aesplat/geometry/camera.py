@@ -57,18 +57,20 @@ def intrinsics_from_fov(fov: Tensor, aspect: float = 1.0) -> Tensor:
 DEFAULT_FOV = 2.0 * math.atan(0.5)  # normalised focal length 1: the camera head's initial FOV
 
 
-def pixel_grid(height: int, width: int, device=None, dtype=torch.float32) -> Tensor:
-    """Normalised coordinates of pixel centres, [H, W, 2] as (x, y) in [0, 1]."""
-    ys = (torch.arange(height, device=device, dtype=dtype) + 0.5) / height
-    xs = (torch.arange(width, device=device, dtype=dtype) + 0.5) / width
+def pixel_grid(height: int, width: int, device=None, dtype=torch.float32, offset: float = 0.5) -> Tensor:
+    """Normalised coordinates of pixel centres, [H, W, 2] as (x, y) in [0, 1]; ``offset`` 0 gives the pixels'
+    top-left corners (u / W, v / H), where NAS3R unprojects its depth maps."""
+    ys = (torch.arange(height, device=device, dtype=dtype) + offset) / height
+    xs = (torch.arange(width, device=device, dtype=dtype) + offset) / width
     gy, gx = torch.meshgrid(ys, xs, indexing="ij")
     return torch.stack([gx, gy], dim=-1)
 
 
-def unproject_depth_camera(depth: Tensor, intrinsics: Tensor) -> Tensor:
-    """z-depth [B, V, H, W] -> points in each camera's frame [B, V, H, W, 3]."""
+def unproject_depth_camera(depth: Tensor, intrinsics: Tensor, offset: float = 0.5) -> Tensor:
+    """z-depth [B, V, H, W] -> points in each camera's frame [B, V, H, W, 3], each pixel's point on the ray
+    through (u + offset, v + offset)."""
     h, w = depth.shape[-2:]
-    grid = pixel_grid(h, w, device=depth.device, dtype=depth.dtype)
+    grid = pixel_grid(h, w, device=depth.device, dtype=depth.dtype, offset=offset)
     fx, fy = intrinsics[..., 0, 0, None, None], intrinsics[..., 1, 1, None, None]
     cx, cy = intrinsics[..., 0, 2, None, None], intrinsics[..., 1, 2, None, None]
     x = (grid[..., 0] - cx) / fx * depth
@@ -81,11 +83,11 @@ def transform_points(pose: Tensor, points: Tensor) -> Tensor:
     return points @ pose[..., :3, :3].transpose(-1, -2) + pose[..., None, :3, 3]
 
 
-def unproject_depth(depth: Tensor, intrinsics: Tensor, extrinsics: Tensor) -> Tensor:
+def unproject_depth(depth: Tensor, intrinsics: Tensor, extrinsics: Tensor, offset: float = 0.5) -> Tensor:
     """z-depth [B, V, H, W] with intrinsics [B, V, 3, 3] and camera-to-world [B, V, 4, 4] -> world points
-    [B, V, H, W, 3]."""
+    [B, V, H, W, 3] (``offset``: as :func:`unproject_depth_camera`)."""
     b, v, h, w = depth.shape
-    cam = unproject_depth_camera(depth, intrinsics).reshape(b, v, h * w, 3)
+    cam = unproject_depth_camera(depth, intrinsics, offset).reshape(b, v, h * w, 3)
     return transform_points(extrinsics, cam).reshape(b, v, h, w, 3)
 
 

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from aesplat.errors import UserError
-from aesplat.geometry import num_sh_coeffs, project_points, rgb_to_sh_dc, safe_norm, sh_rotation_matrix
+from aesplat.geometry import num_sh_coeffs, project_points, rgb_to_sh_dc, safe_norm
 
 
 @dataclass(frozen=True)
@@ -162,9 +162,9 @@ class ViewDependentHead(nn.Module):
 class DecoupledAppearance(nn.Module, ABC):
     """Assembles every Gaussian's SH coefficients as the appearance ``mode`` (``APPEARANCE_MODES``) says.
 
-    The Gaussian head predicts each view's SH from that view's pixels, in that camera's frame; in the
-    baseline rows they are turned into view 0's frame by the view's camera-to-view-0 rotation (the paper's
-    c^{v->1}, Eq. 1). The view-dependent head's output is taken as it is, in view 0's frame: GVSRE feeds it
+    The Gaussian head predicts each view's SH from that view's pixels; in the baseline rows they are taken as
+    they are, in view 0's frame, as NAS3R takes them (its code leaves the rotation by the view's
+    camera-to-view-0 rotation out). The view-dependent head's output is taken as it is too: GVSRE feeds it
     the directions to every camera centre in that frame, so it can learn that frame's SH (``no_gvsre`` has
     no such frame cue; as in the paper, nothing turns its output either).
 
@@ -207,17 +207,16 @@ class DecoupledAppearance(nn.Module, ABC):
         images: Tensor,  # [B, V, 3, H, W] context images
         means: Tensor,  # [B, V, P, 3] Gaussian centres, view-0 frame
         features: Tensor,  # [B, V, P, F] Gaussian-head features
-        head_sh: Tensor | None,  # [B, V, P, S, 3] SH predicted by the Gaussian head (baseline modes)
+        head_sh: Tensor,  # [B, V, P, K', 3] SH predicted by the Gaussian head (K' >= K; the baseline modes')
         intrinsics: Tensor,  # [B, V, 3, 3] context cameras
         extrinsics: Tensor,  # [B, V, 4, 4]
     ) -> Tensor:
         """-> SH coefficients [B, V·P, K, 3]."""
         b, v, p, _ = means.shape
         blocks: list[Tensor] = [i2dc(images)] if self.parts.dc == "i2dc" else []
-        if head_sh is not None:
-            s = head_sh.shape[3]  # K (baseline) or K - 1 (baseline_i2dc): the rotation is block diagonal
-            turn = sh_rotation_matrix(extrinsics[:, :, :3, :3], self.sh_degree)[..., -s:, -s:]  # [B, V, S, S]
-            blocks.append(torch.einsum("bvij,bvpjc->bvpic", turn, head_sh).reshape(b, v * p, s, 3))
+        if self.gaussian_head_sh:  # NAS3R's SH as the head gives them, taken in view 0's frame as they are
+            k = num_sh_coeffs(self.sh_degree)
+            blocks.append(head_sh[:, :, :, k - self.gaussian_head_sh : k].reshape(b, v * p, -1, 3))
         if self.view_dependent_head is not None:
             self.check_context_views(v)
             inputs = [features.reshape(b, v * p, -1), self.view_inputs(images, means, intrinsics, extrinsics)]

@@ -1,23 +1,19 @@
-"""Camera head: refined camera token -> pose relative to view 0 and one field of view per view."""
+"""Camera head: VGGT's, as NAS3R uses it. The refined camera token of every view -> [T, quaternion (x, y, z, w),
+fov_h, fov_w] (world-to-camera), turned into camera-to-world poses relative to view 0 and one focal length for
+all views (view 0's, from its vertical field of view; square pixels, centred principal point)."""
 
 from __future__ import annotations
-
-import math
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from aesplat.geometry import (
-    DEFAULT_FOV,
-    homogeneous_to_translation,
-    intrinsics_from_fov,
-    make_pose,
-    rot6d_to_matrix,
-)
+from aesplat.geometry import DEFAULT_FOV, invert_pose, make_pose, quat_to_matrix
 
-FOV_MIN = math.radians(10.0)
-FOV_MAX = math.radians(160.0)
+from .layers import Block, Mlp, init_weights
+
+FOV_MIN, FOV_MAX = 0.09, 2.97  # radians: VGGT's clamp of the predicted fields of view (about 5° and 170°)
+POSE_DIM = 9  # [T (3), quaternion x, y, z, w (4), fov_h, fov_w]
 
 # The correlation branch works at a fixed resolution, so its cost does not grow with the input images.
 CORRELATION_SIZE = 42  # images are resized to this square before the feature CNN
@@ -79,57 +75,104 @@ class ViewCorrelation(nn.Module):
 
 
 class CameraHead(nn.Module):
-    """An MLP on each refined camera token predicting
+    """VGGT's camera head (module and parameter names included, so trained heads load by name).
 
-    - a 6D rotation (Gram-Schmidt), output bias initialised to the identity;
-    - a 4D homogeneous translation t = xyz / (softplus(w) + eps), initialised near zero;
-    - one field of view across the image's shorter side (square pixels), bounded to [10°, 160°] by a sigmoid
-      and initialised to exactly 2·atan(0.5).
+    The camera token of each view (index 0 of the last token map, [B, V, dim_in]) is normalised, modulated by
+    an embedding of the current pose estimate (adaptive LayerNorm: shift, scale, gate), refined by
+    ``trunk_depth`` transformer blocks over the views' tokens and mapped by an MLP to an update of the pose
+    encoding [T, quaternion x, y, z, w, fov_h, fov_w] (the blocks attend across the views' camera tokens, masked
+    as ``forward`` says). ``iterations`` refinements (NAS3R: 1), each from the
+    previous estimate detached; the first from a learnt empty pose.
 
-    Poses are camera-to-world in view 0's frame; view 0 is set to the identity exactly (its own camera
-    token still tells the transformer which frame is canonical). With ``correlation`` the vector of
-    :class:`ViewCorrelation` is added to the trunk's first hidden layer (the images must then be given).
+    A new head starts, as NAS3R's randomly initialised one does, at the identity rotation, zero translation
+    and a field of view of 2·atan(0.5) (53°): the output layer's pose and FoV weights are zero.
+    With ``correlation`` the vector of :class:`ViewCorrelation` is added to each normalised camera token
+    (the images must then be given).
     """
 
-    def __init__(self, in_dim: int, hidden: int, correlation: bool = False) -> None:
+    def __init__(self, dim_in: int, num_heads: int, trunk_depth: int = 4, iterations: int = 1,
+                 correlation: bool = False) -> None:  # fmt: skip
         super().__init__()
+        self.iterations = iterations
         self.trunk = nn.Sequential(
-            nn.LayerNorm(in_dim), nn.Linear(in_dim, hidden), nn.GELU(), nn.Linear(hidden, hidden), nn.GELU()
+            *(Block(dim_in, num_heads, 4.0, 0.01, norm_eps=1e-5) for _ in range(trunk_depth))
         )
-        self.correlation = ViewCorrelation(hidden) if correlation else None
-        self.rotation = nn.Linear(hidden, 6)
-        self.translation = nn.Linear(hidden, 4)
-        self.fov = nn.Linear(hidden, 1)
-        for layer in self.trunk:
-            if isinstance(layer, nn.Linear):
-                nn.init.trunc_normal_(layer.weight, std=0.02)
-                nn.init.zeros_(layer.bias)
-        # Small (not zero) pose weights, so cameras depend on the images from the first step.
-        nn.init.normal_(self.rotation.weight, std=1e-3)
-        nn.init.normal_(self.translation.weight, std=1e-3)
-        nn.init.zeros_(self.fov.weight)
+        self.token_norm = nn.LayerNorm(dim_in)
+        self.trunk_norm = nn.LayerNorm(dim_in)
+        self.empty_pose_tokens = nn.Parameter(torch.zeros(1, 1, POSE_DIM))
+        self.embed_pose = nn.Linear(POSE_DIM, dim_in)
+        self.poseLN_modulation = nn.Sequential(nn.SiLU(), nn.Linear(dim_in, 3 * dim_in))
+        self.adaln_norm = nn.LayerNorm(dim_in, elementwise_affine=False, eps=1e-6)
+        self.pose_branch = Mlp(dim_in, dim_in // 2, POSE_DIM)
+        self.correlation = ViewCorrelation(dim_in) if correlation else None
+        init_weights(self.trunk)
         with torch.no_grad():
-            self.rotation.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
-            self.translation.bias.copy_(torch.tensor([0.0, 0.0, 0.0, math.log(math.e - 1.0)]))  # w -> 1
-            frac = (DEFAULT_FOV - FOV_MIN) / (FOV_MAX - FOV_MIN)
-            self.fov.bias.fill_(math.log(frac / (1.0 - frac)))
+            self.pose_branch.fc2.weight[:7].zero_()
+            self.pose_branch.fc2.bias[:7].copy_(torch.tensor([0.0] * 6 + [1.0]) / iterations)
+            self.pose_branch.fc2.weight[7:].zero_()
+            self.pose_branch.fc2.bias[7:].fill_(DEFAULT_FOV / iterations)
 
-    def forward(
-        self, camera_tokens: Tensor, images: Tensor | None = None, aspect: float = 1.0
-    ) -> tuple[Tensor, Tensor]:
-        """camera_tokens [B, V, C] (images [B, V, 3, H, W] with ``correlation``) -> extrinsics [B, V, 4, 4]
-        (camera-to-view-0), intrinsics [B, V, 3, 3] of images of ``aspect`` = width / height (the FOV spans
-        the shorter side; pixels are square)."""
-        h = self.trunk[:2](camera_tokens)  # layer norm, first linear layer
+    def encode(
+        self, camera_tokens: Tensor, images: Tensor | None = None, num_context: int | None = None
+    ) -> Tensor:
+        """camera_tokens [B, V, dim_in] -> pose encoding [B, V, 9] of the last iteration (fields of view through
+        a ReLU, as VGGT activates them; the next iteration starts from the encoding before it)."""
+        tokens = self.token_norm(camera_tokens)
         if self.correlation is not None:
             if images is None:
                 raise ValueError("the camera head's correlation branch needs the images of all views")
-            h = h + self.correlation(images)
-        h = self.trunk[2:](h)
-        rot = rot6d_to_matrix(self.rotation(h))  # [B, V, 3, 3]
-        trans = homogeneous_to_translation(self.translation(h))  # [B, V, 3]
-        pose = make_pose(rot, trans)
-        eye = torch.eye(4, dtype=pose.dtype, device=pose.device).expand_as(pose[:, :1])
-        extrinsics = torch.cat([eye, pose[:, 1:]], dim=1)
-        fov = FOV_MIN + (FOV_MAX - FOV_MIN) * torch.sigmoid(self.fov(h)[..., 0])  # [B, V]
-        return extrinsics, intrinsics_from_fov(fov, aspect)
+            tokens = tokens + self.correlation(images)
+        b, v, _ = tokens.shape
+        pose = None
+        for _ in range(self.iterations):
+            previous = self.empty_pose_tokens.expand(b, v, -1) if pose is None else pose.detach()
+            condition = self.embed_pose(previous)
+            shift, scale, gate = self.poseLN_modulation(condition).chunk(3, dim=-1)
+            x = gate * (self.adaln_norm(tokens) * (1 + scale) + shift) + tokens
+            for block in self.trunk:  # attention across the views' camera tokens
+                x = block(x, num_context=num_context)
+            delta = self.pose_branch(self.trunk_norm(x))
+            pose = delta if pose is None else pose + delta
+        return torch.cat([pose[..., :7], F.relu(pose[..., 7:])], dim=-1)  # VGGT: fields of view through a ReLU
+
+    def forward(
+        self,
+        camera_tokens: Tensor,
+        images: Tensor | None = None,
+        aspect: float = 1.0,
+        num_context: int | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """camera_tokens [B, V, dim_in] (images [B, V, 3, H, W] with ``correlation``) -> extrinsics
+        [B, V, 4, 4] (camera-to-view-0; view 0 exactly the identity) and normalised intrinsics [B, V, 3, 3]
+        of images of ``aspect`` = width / height.
+
+        ``num_context``: the first ``num_context`` views are context views, whose tokens attend to context
+        tokens only in the head's blocks (the others attend to all), as in the trunk's global attention, so the
+        target views cannot change the context cameras. None: every token attends to every view (VGGT's and
+        NAS3R's head, through which the targets reach the context cameras)."""
+        return cameras_from_encoding(self.encode(camera_tokens, images, num_context), aspect)
+
+
+def cameras_from_encoding(pose: Tensor, aspect: float) -> tuple[Tensor, Tensor]:
+    """VGGT pose encoding [B, V, 9] (world-to-camera T and quaternion x, y, z, w; fov_h, fov_w) -> extrinsics
+    [B, V, 4, 4] camera-to-world relative to view 0, intrinsics [B, V, 3, 3] normalised.
+
+    As NAS3R: the fields of view are clamped to [0.09, 2.97] rad; fy = 0.5 / tan(fov_h / 2) (normalised by
+    the height), fx the same focal in pixels (normalised by the width: fy / aspect); every view takes view
+    0's focal; the principal point is the centre. fov_w is not used.
+    """
+    rot = quat_to_matrix(pose[..., [6, 3, 4, 5]])  # (x, y, z, w) -> (w, x, y, z)
+    world_to_cam = make_pose(rot, pose[..., :3])
+    cam_to_world = invert_pose(world_to_cam)
+    rel = invert_pose(cam_to_world[:, :1]) @ cam_to_world
+    eye = torch.eye(4, dtype=rel.dtype, device=rel.device).expand_as(rel[:, :1])
+    extrinsics = torch.cat([eye, rel[:, 1:]], dim=1)
+    fov_h = pose[..., 7].clamp(FOV_MIN, FOV_MAX)[:, :1].expand(-1, pose.shape[1])  # view 0's, for all views
+    fy = 0.5 / torch.tan(fov_h / 2)
+    intrinsics = torch.zeros(*pose.shape[:2], 3, 3, dtype=pose.dtype, device=pose.device)
+    intrinsics[..., 0, 0] = fy / aspect
+    intrinsics[..., 1, 1] = fy
+    intrinsics[..., 0, 2] = 0.5
+    intrinsics[..., 1, 2] = 0.5
+    intrinsics[..., 2, 2] = 1.0
+    return extrinsics, intrinsics

@@ -34,6 +34,7 @@ class EncoderConfig:
     # Pixels per patch side. DINOv2 (and any pretrained checkpoint) uses 14; a randomly initialised small model
     # may use a smaller patch for more tokens per image (42 px: 3x3 tokens at 14, 6x6 at 7).
     patch_size: int = PATCH_SIZE
+    layerscale_init: float = 1.0  # DINOv2's (VGGT builds its ViT-L with 1.0)
 
     def __post_init__(self) -> None:
         if self.patch_size < 1:
@@ -72,16 +73,23 @@ class PatchEncoder(nn.Module):
         self.patch_embed = nn.Module()
         self.patch_embed.proj = nn.Conv2d(3, d, cfg.patch_size, cfg.patch_size)
         self.cls_token = nn.Parameter(torch.zeros(1, 1, d))
-        self.reg_token = nn.Parameter(torch.zeros(1, cfg.num_registers, d)) if cfg.num_registers else None
+        self.register_tokens = (
+            nn.Parameter(torch.zeros(1, cfg.num_registers, d)) if cfg.num_registers else None
+        )
         self.pos_embed = nn.Parameter(torch.zeros(1, 1 + cfg.pos_grid**2, d))
-        self.blocks = nn.ModuleList(Block(d, cfg.num_heads, cfg.mlp_ratio) for _ in range(cfg.depth))
+        # DINOv2's masked-image-modelling token: kept so its checkpoints load whole, never used or trained
+        self.mask_token = nn.Parameter(torch.zeros(1, d), requires_grad=False)
+        self.blocks = nn.ModuleList(
+            Block(d, cfg.num_heads, cfg.mlp_ratio, cfg.layerscale_init) for _ in range(cfg.depth)
+        )
         self.norm = nn.LayerNorm(d, eps=1e-6)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         init_weights(self)
-        for p in (self.cls_token, self.pos_embed, self.reg_token):
+        nn.init.trunc_normal_(self.pos_embed, std=0.02)
+        for p in (self.cls_token, self.register_tokens):
             if p is not None:
-                nn.init.trunc_normal_(p, std=0.02)
+                nn.init.normal_(p, std=1e-6)
 
     def _pos_embed(self, h: int, w: int) -> Tensor:
         """Position embedding for an h x w patch grid: [1, 1 + h·w, dim] (class token first)."""
@@ -95,8 +103,8 @@ class PatchEncoder(nn.Module):
         h, w = x.shape[-2:]
         x = x.flatten(2).transpose(1, 2)
         x = torch.cat([self.cls_token.expand(x.shape[0], -1, -1), x], dim=1) + self._pos_embed(h, w)
-        if self.reg_token is not None:
-            x = torch.cat([x[:, :1], self.reg_token.expand(x.shape[0], -1, -1), x[:, 1:]], dim=1)
+        if self.register_tokens is not None:
+            x = torch.cat([x[:, :1], self.register_tokens.expand(x.shape[0], -1, -1), x[:, 1:]], dim=1)
         for block in self.blocks:
             x = block(x)
         return self.norm(x)[:, 1 + self.cfg.num_registers :]

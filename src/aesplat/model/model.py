@@ -1,5 +1,7 @@
-"""The assembled AESplat model: encoder -> geometry transformer -> camera, depth and Gaussian heads ->
-decoupled appearance -> Gaussians in view 0's frame plus a camera for every input view."""
+"""The assembled AESplat model: NAS3R's network (VGGT's aggregator: a DINOv2 patch encoder and alternating
+attention; VGGT's camera and depth heads; NAS3R's Gaussian head) -> decoupled appearance -> Gaussians in view
+0's frame plus a camera for every input view. Every size is the same modules at other widths; ``large`` is
+NAS3R's network exactly, and its checkpoints load by name (``nas3r.py``)."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from aesplat.errors import UserError
-from aesplat.geometry import matrix_to_quat, relative_to_first, unproject_depth
+from aesplat.geometry import relative_to_first, unproject_depth
 from aesplat.types import BatchedExample, Gaussians
 
 from .appearance import VIEW_AGGREGATIONS, appearance_mode, build_appearance
@@ -19,12 +21,13 @@ from .camera_head import CameraHead
 from .dpt import DepthHead
 from .encoder import EncoderConfig, PatchEncoder
 from .gaussian_head import GaussianHead, pixel_scales_to_scene
-from .transformer import GeometryTransformer, TransformerConfig
+from .transformer import Aggregator, TransformerConfig
 from .weights import WeightsReport, load_weights
 
 log = logging.getLogger(__name__)
 
-_GROUP_OF = {"appearance": "appearance", "encoder": "backbone"}  # top-level submodule -> optimizer group
+# parameter-name prefix -> optimizer group; the rest is "rest"
+_GROUP_OF = {"appearance.": "appearance", "aggregator.patch_embed.": "backbone"}
 COMPILE_MODES = ("none", "blocks")
 
 # Where a run's cameras come from (``model.cameras``): the camera head (the method: pose-free), or the data
@@ -42,9 +45,12 @@ class ModelConfig:
     head_features: int = 128  # DPT fusion width
     head_channels: tuple[int, int, int, int] = (96, 192, 384, 384)  # DPT reassemble widths, fine to coarse
     head_precision: str = "fp32"  # fp32 | bf16: the DPT trunks' convolutions under bf16 autocast
-    gaussian_feature_dim: int = 64  # Gaussian-head features passed to the view-dependent head
-    camera_hidden: int = 256
+    camera_depth: int = 4  # transformer blocks of the camera head (VGGT: 4, at twice the trunk's width)
+    camera_iterations: int = 1  # refinements of the pose encoding (NAS3R: 1; VGGT: 4)
     camera_correlation: bool = False  # the camera head also sees a view-0 cost volume (ViewCorrelation)
+    # The camera head's attention across views masked as the trunk's global attention (context cameras never
+    # see the targets); False: NAS3R's head, where the target images change the context cameras.
+    camera_mask: bool = True
     appearance: str = "full"
     sh_degree: int = 4
     # How the view-dependent head takes in the other context views: concat (the paper's; its width fixes the
@@ -54,46 +60,44 @@ class ModelConfig:
     gvsre_dim: int = 32
     appearance_hidden: int = 128
     # The depth head's range (z-depth, scene units): the one place a run's depth range lives (model.net.near /
-    # model.net.far set it); the data carry none.
-    near: float = 0.1
+    # model.net.far set it); the data carry none. depth = near + (far - near)·sigmoid: NAS3R's, with 1 and 100.
+    near: float = 1.0
     far: float = 100.0
-    # What the Gaussian head's scales mean (gaussian_head.SCALE_MODES): absolute (scene units, the paper's:
+    # What the Gaussian head's scales mean (gaussian_head.SCALE_MODES): absolute (scene units, NAS3R's:
     # scale_multiplier * softplus) or pixel (scale_pixels: pixels at the Gaussian's own depth); both capped at
     # scale_max scene units.
     scale_mode: str = "absolute"
     scale_multiplier: float = 0.001
     scale_pixels: tuple[float, float] = (0.5, 15.0)
     scale_max: float = 0.3
-    weights: str | None = None  # local timm / DINOv2 ViT/14 or VGGT checkpoint (see weights.py)
+    weights: str | None = None  # local DINOv2, VGGT, NAS3R or aesplat checkpoint (see weights.py)
 
 
 SIZES: dict[str, ModelConfig] = {
-    # CPU tests and the CPU demo: about 2M parameters.
+    # CPU tests and the CPU demo: the same modules at width 96, 4 + 4 blocks, a 2-block camera head.
     "tiny": ModelConfig(
         encoder=EncoderConfig(dim=96, depth=4, num_heads=3, pos_grid=16),
         transformer=TransformerConfig(dim=96, depth=4, num_heads=3, num_register_tokens=2),
         head_features=32,
         head_channels=(24, 48, 96, 96),
-        gaussian_feature_dim=32,
-        camera_hidden=64,
+        camera_depth=2,
         gvsre_dim=16,
         appearance_hidden=32,
     ),
-    # DINOv2 ViT-B/14 encoder, 12 + 12 decoder blocks of width 768.
+    # DINOv2 ViT-B/14 encoder (4 registers), 12 + 12 alternating blocks of width 768.
     "base": ModelConfig(
-        encoder=EncoderConfig(dim=768, depth=12, num_heads=12),
+        encoder=EncoderConfig(dim=768, depth=12, num_heads=12, num_registers=4),
         transformer=TransformerConfig(dim=768, depth=12, num_heads=12),
         head_features=128,
         head_channels=(96, 192, 384, 768),
-        camera_hidden=384,
     ),
-    # VGGT-like: DINOv2 ViT-L/14 encoder, 24 frame + 24 global blocks of width 1024, DPT width 256.
+    # NAS3R's network (VGGT-1B's aggregator and heads): DINOv2 ViT-L/14 with 4 registers, 24 frame + 24 global
+    # blocks of width 1024, DPT width 256, SH degree 4 (83 Gaussian channels).
     "large": ModelConfig(
-        encoder=EncoderConfig(dim=1024, depth=24, num_heads=16),
-        transformer=TransformerConfig(dim=1024, depth=24, num_heads=16),
+        encoder=EncoderConfig(dim=1024, depth=24, num_heads=16, num_registers=4),
+        transformer=TransformerConfig(dim=1024, depth=24, num_heads=16, layers=(4, 11, 17, 23)),
         head_features=256,
         head_channels=(256, 512, 1024, 1024),
-        camera_hidden=512,
     ),
 }
 
@@ -104,6 +108,7 @@ _NESTED = {
     "qk_norm": ("transformer", "qk_norm"),
     "encoder_registers": ("encoder", "num_registers"),
     "patch_size": ("encoder", "patch_size"),
+    "intrinsics_tokens": ("transformer", "intrinsics_tokens"),
 }
 
 
@@ -117,6 +122,7 @@ class ModelOutput:
     extrinsics  [B, Vc + Vt, 4, 4] camera-to-world in view 0's frame (view 0 is the identity), context first
     intrinsics  [B, Vc + Vt, 3, 3] normalised
     depth       [B, Vc, H, W] predicted z-depth of the context views
+    depth_confidence  [B, Vc, H, W] the depth head's confidence (> 1)
     predicted_cameras  (extrinsics, intrinsics) of the camera head, as above, when the cameras above were
                 given (``forward(..., extrinsics=E, intrinsics=K)``) and target images too, so that the
                 head's predictions can be supervised (a posed warm start); else None
@@ -127,25 +133,11 @@ class ModelOutput:
     intrinsics: Tensor
     depth: Tensor
     predicted_cameras: tuple[Tensor, Tensor] | None = None
+    depth_confidence: Tensor | None = None
 
     @property
     def num_context_views(self) -> int:
         return self.depth.shape[1]
-
-
-def _quat_multiply(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product of quaternions (w, x, y, z) [..., 4] x [..., 4] -> [..., 4]."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        dim=-1,
-    )
 
 
 class AESplatModel(nn.Module):
@@ -168,26 +160,38 @@ class AESplatModel(nn.Module):
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.encoder = PatchEncoder(cfg.encoder)
-        self.transformer = GeometryTransformer(cfg.encoder.dim, cfg.transformer)
-        token_dim = 2 * cfg.transformer.dim
-        self.camera_head = CameraHead(token_dim, cfg.camera_hidden, cfg.camera_correlation)
+        t = cfg.transformer
+        patch = cfg.encoder.patch_size
+        self.aggregator = Aggregator(cfg.encoder, t)
+        token_dim = 2 * t.dim
+        self.camera_head = CameraHead(
+            token_dim, t.num_heads, cfg.camera_depth, cfg.camera_iterations, cfg.camera_correlation
+        )
         self.depth_head = DepthHead(
-            token_dim, cfg.head_features, cfg.head_channels, cfg.near, cfg.far, cfg.head_precision
+            token_dim, cfg.head_features, cfg.head_channels, patch, cfg.near, cfg.far, cfg.head_precision
         )
         self.appearance = build_appearance(
-            cfg.view_aggregation, cfg.appearance, cfg.sh_degree, cfg.gaussian_feature_dim,
+            cfg.view_aggregation, cfg.appearance, cfg.sh_degree, cfg.head_features // 2,
             cfg.num_context_views, cfg.gvsre_dim, cfg.appearance_hidden,
         )  # fmt: skip
         self.gaussian_head = GaussianHead(
-            token_dim, cfg.head_features, cfg.head_channels, cfg.gaussian_feature_dim,
-            self.appearance.gaussian_head_sh, cfg.scale_multiplier, cfg.scale_max, cfg.head_precision,
-            cfg.scale_mode, cfg.scale_pixels,
+            token_dim, cfg.head_features, cfg.head_channels, patch, cfg.sh_degree, cfg.scale_multiplier,
+            cfg.scale_max, cfg.head_precision, cfg.scale_mode, cfg.scale_pixels,
         )  # fmt: skip
         self.weights_report: WeightsReport | None = None
         if cfg.weights:
             self.weights_report = load_weights(self, cfg.weights)
             log.info("loaded %d tensors from %s", len(self.weights_report.loaded), self.weights_report.path)
+
+    @property
+    def encoder(self) -> PatchEncoder:
+        """The DINOv2 patch encoder (``aggregator.patch_embed``)."""
+        return self.aggregator.patch_embed
+
+    @property
+    def takes_intrinsics(self) -> bool:
+        """Whether the network reads every view's intrinsics (NAS3R's ``-I``): they must then be given."""
+        return self.cfg.transformer.intrinsics_tokens
 
     @property
     def sh_degree(self) -> int:
@@ -211,14 +215,12 @@ class AESplatModel(nn.Module):
         report = self.weights_report
         if report is None:
             return False
-        if report.format == "aesplat":
-            return any(k.startswith("encoder.") for k in report.loaded)
-        return any(not k.startswith("transformer.") for k in report.loaded)
+        return any(k.startswith("aggregator.patch_embed.") for k in report.loaded)
 
     def transformer_blocks(self) -> list[nn.Module]:
         """Every encoder, frame and global block: the units that ``compile_blocks`` compiles."""
-        t = self.transformer
-        return [*self.encoder.blocks, *t.frame_blocks, *t.global_blocks]
+        t = self.aggregator
+        return [*t.patch_embed.blocks, *t.frame_blocks, *t.global_blocks]
 
     def compile_blocks(self, **options: Any) -> None:
         """Compile each encoder and transformer block in place (``nn.Module.compile``): regional compilation.
@@ -232,20 +234,27 @@ class AESplatModel(nn.Module):
 
     def named_parameter_groups(self) -> dict[str, list[tuple[str, nn.Parameter]]]:
         """Trainable parameters by optimizer group: ``appearance`` (view-dependent head + GVSRE MLP),
-        ``backbone`` (patch encoder) and ``rest``. Every trainable parameter is in exactly one group."""
+        ``backbone`` (the patch encoder) and ``rest``. Every trainable parameter is in exactly one group."""
         groups: dict[str, list[tuple[str, nn.Parameter]]] = {"appearance": [], "backbone": [], "rest": []}
         for name, param in self.named_parameters():
             if not param.requires_grad:
                 continue
-            groups[_GROUP_OF.get(name.split(".")[0], "rest")].append((name, param))
+            group = next((g for prefix, g in _GROUP_OF.items() if name.startswith(prefix)), "rest")
+            groups[group].append((name, param))
         return groups
 
     def _check_cameras(self, context: Tensor, extrinsics: Tensor | None, intrinsics: Tensor | None) -> None:
+        b, vc = context.shape[:2]
+        if extrinsics is None and intrinsics is not None and self.takes_intrinsics:
+            if intrinsics.ndim != 4 or intrinsics.shape[0] != b or intrinsics.shape[2:] != (3, 3):
+                raise ValueError(f"intrinsics must be [B, V, 3, 3] with B = {b}, got {tuple(intrinsics.shape)}")
+            return
         if (extrinsics is None) != (intrinsics is None):
             raise ValueError("give both extrinsics and intrinsics to replace the camera head's, or neither")
         if extrinsics is None:
+            if self.takes_intrinsics:
+                raise UserError("this network (NAS3R -I) takes every view's intrinsics: give them")
             return
-        b, vc = context.shape[:2]
         v = extrinsics.shape[1] if extrinsics.ndim == 4 else -1
         if extrinsics.shape != (b, v, 4, 4) or intrinsics.shape != (b, v, 3, 3) or v < vc:
             raise ValueError(
@@ -287,46 +296,47 @@ class AESplatModel(nn.Module):
             )
         images = context_images if target_images is None else torch.cat([context_images, target_images], dim=1)
         v = images.shape[1]
-        grid = (h // self.cfg.encoder.patch_size, w // self.cfg.encoder.patch_size)
-
-        tokens = self.encoder(images.flatten(0, 1)).unflatten(0, (b, v))  # [B, V, P, D]
-        layers = self.transformer(tokens, grid, num_context=vc)  # 4 x [B, V, T, 2·dim]
+        given_k = intrinsics  # NAS3R -I: the network reads them; the head still predicts the poses
+        if self.takes_intrinsics and (given_k is None or given_k.shape[1] < v):
+            got = None if given_k is None else given_k.shape[1]
+            raise ValueError(f"this network takes the intrinsics of all {v} views, got {got}")
+        layers = self.aggregator(images, vc, given_k[:, :v] if self.takes_intrinsics else None)
 
         with torch.autocast(device_type=images.device.type, enabled=False):
             layers = [x.float() for x in layers]
             context_images = context_images.float()
             predicted = None
+            mask = vc if self.cfg.camera_mask else None
             if extrinsics is None:
-                extrinsics, intrinsics = self.camera_head(layers[-1][:, :, 0], images, w / h)
+                extrinsics, head_k = self.camera_head(layers[-1][:, :, 0], images, w / h, mask)
+                intrinsics = given_k[:, :v] if self.takes_intrinsics else head_k
             elif target_images is not None:  # given cameras render; the head's are only supervised
-                predicted = self.camera_head(layers[-1][:, :, 0], images, w / h)
+                predicted = self.camera_head(layers[-1][:, :, 0], images, w / h, mask)
             extrinsics, intrinsics = extrinsics.float(), intrinsics.float()
-            start = self.transformer.patch_start
+            start = self.aggregator.patch_start
             context_tokens = [x[:, :vc, start:].flatten(0, 1) for x in layers]  # 4 x [B·Vc, P, 2·dim]
 
-            depth = self.depth_head(context_tokens, grid, (h, w)).unflatten(0, (b, vc))  # [B, Vc, H, W]
+            depth, confidence = self.depth_head(context_tokens, (h, w))
+            depth, confidence = depth.unflatten(0, (b, vc)), confidence.unflatten(0, (b, vc))  # [B, Vc, H, W]
             ctx_k, ctx_e = intrinsics[:, :vc], extrinsics[:, :vc]
-            means = unproject_depth(depth, ctx_k, ctx_e).reshape(b, vc, h * w, 3)
+            # NAS3R unprojects pixel (u, v) through (u / W, v / H), its top-left corner
+            means = unproject_depth(depth, ctx_k, ctx_e, offset=0.0).reshape(b, vc, h * w, 3)
 
-            g = self.gaussian_head(context_tokens, grid, context_images.flatten(0, 1))
+            g = self.gaussian_head(context_tokens, context_images.flatten(0, 1))
             scales = g.scales.unflatten(0, (b, vc))  # [B, Vc, P, 3]
             if self.cfg.scale_mode == "pixel":
                 scales = pixel_scales_to_scene(scales, depth, ctx_k, self.cfg.scale_max)
-            camera_quats = matrix_to_quat(ctx_e[..., :3, :3])  # [B, Vc, 4]
-            quats = _quat_multiply(camera_quats[:, :, None], g.quats.unflatten(0, (b, vc)))  # to view 0's frame
-            head_sh = None if g.sh is None else g.sh.unflatten(0, (b, vc))
-            sh = self.appearance(
-                context_images, means, g.features.unflatten(0, (b, vc)), head_sh, ctx_k, ctx_e
-            )  # [B, N, K, 3]
+            features, head_sh = g.features.unflatten(0, (b, vc)), g.sh.unflatten(0, (b, vc))
+            sh = self.appearance(context_images, means, features, head_sh, ctx_k, ctx_e)  # [B, N, K, 3]
             gaussians = Gaussians(
                 means=means.reshape(b, -1, 3),
-                quats=quats.reshape(b, -1, 4),
+                quats=g.quats.reshape(b, -1, 4),
                 scales=scales.reshape(b, -1, 3),
                 opacities=g.opacities.reshape(b, -1),
                 sh=sh,
             )
         return ModelOutput(gaussians=gaussians, extrinsics=extrinsics, intrinsics=intrinsics, depth=depth,
-                           predicted_cameras=predicted)  # fmt: skip
+                           predicted_cameras=predicted, depth_confidence=confidence)  # fmt: skip
 
 
 def checkpoint_cameras(checkpoint: dict) -> str:
@@ -339,12 +349,16 @@ def forward_batch(
 ) -> ModelOutput:
     """``model`` on the views of ``batch`` with its cameras from ``cameras`` (one of ``CAMERA_SOURCES``).
 
-    predicted: the camera head predicts every view's camera from the context and target images.
+    predicted: the camera head predicts every view's camera from the context and target images (a network
+    that reads intrinsics, NAS3R's -I, is given the batch's and predicts the poses).
     dataset: the batch's own cameras, every view's pose expressed relative to context view 0; the model
     sees the context images only, or, with ``predict_cameras``, all images, and its camera head's
     predictions come back in ``predicted_cameras`` (a supervised pose loss: the posed warm start).
     """
     if cameras == "predicted":
+        if model.takes_intrinsics:  # NAS3R -I: the data set's intrinsics go in, the poses are predicted
+            k = torch.cat([batch.context.intrinsics, batch.target.intrinsics], dim=1).float()
+            return model(batch.context.images, batch.target.images, intrinsics=k)
         return model(batch.context.images, batch.target.images)
     if cameras == "dataset":
         extrinsics, intrinsics = dataset_cameras(batch)
@@ -414,8 +428,10 @@ class NetOptions:
     head_precision: str | None = None  # fp32 | bf16: the DPT trunks' convolutions under bf16 autocast
     head_features: int | None = None  # DPT fusion width
     head_channels: tuple[int, int, int, int] | None = None  # DPT reassemble widths, fine to coarse
-    gaussian_feature_dim: int | None = None  # Gaussian-head features passed to the view-dependent head
-    camera_hidden: int | None = None  # camera head MLP width
+    camera_depth: int | None = None  # transformer blocks of the camera head (VGGT: 4)
+    camera_iterations: int | None = None  # refinements of the pose encoding (NAS3R: 1)
+    camera_mask: bool | None = None  # false: NAS3R's camera head, whose context cameras see the target views
+    intrinsics_tokens: bool | None = None  # NAS3R -I: the network reads every view's intrinsics
     gvsre_dim: int | None = None  # GVSRE output width
     appearance_hidden: int | None = None  # view-dependent head MLP width
     scale_mode: str | None = None  # absolute (scene units, the paper's) | pixel (pixels at its depth)

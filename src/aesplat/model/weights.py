@@ -1,6 +1,7 @@
-"""Loading local pretrained weights by name: DINOv2 ViT/14 encoders (timm or original format), VGGT's
-aggregator (encoder + alternating-attention blocks), and a whole AESplat model from a training checkpoint of
-this project (``aesplat fit``'s ``last.ckpt``, e.g. the posed warm start). Nothing is ever downloaded.
+"""Loading local pretrained weights by name: DINOv2 ViT/14 encoders (timm or original format), VGGT
+(aggregator, camera and depth heads), NAS3R's trained networks (its Lightning ``.ckpt``: the whole network,
+Gaussian head included), and a whole AESplat model from a training checkpoint of this project (``aesplat
+fit``'s ``last.ckpt``, e.g. the posed warm start). Nothing is ever downloaded.
 
 Unknown and missing keys are never silently ignored: each loader returns a :class:`WeightsReport` and warns.
 """
@@ -21,7 +22,6 @@ from torch import Tensor, nn
 from ..errors import MissingFileError, UserError
 from ..files import atomic_write
 from .encoder import PatchEncoder, resize_position_grid
-from .transformer import GeometryTransformer
 
 
 @dataclass
@@ -29,15 +29,11 @@ class WeightsReport:
     """What a weights loader did: the detected format and the keys it could not match."""
 
     path: str
-    format: str  # "timm", "dinov2", "vggt" or "aesplat"
+    format: str  # "timm", "dinov2", "vggt", "nas3r" or "aesplat"
     loaded: list[str] = field(default_factory=list)
     missing: list[str] = field(default_factory=list)  # model parameters the checkpoint lacks
     unexpected: list[str] = field(default_factory=list)  # checkpoint keys the model does not have
-    ignored: list[str] = field(default_factory=list)  # known keys with no use here (mask_token, VGGT's heads)
-
-
-# Keys of the original DINOv2 release that the encoder deliberately has no use for.
-_DINOV2_UNUSED = {"mask_token"}
+    ignored: list[str] = field(default_factory=list)  # known keys with no use here (VGGT's point/track heads)
 
 
 def _unwrap(obj: object) -> dict[str, Tensor]:
@@ -55,11 +51,11 @@ def _unwrap(obj: object) -> dict[str, Tensor]:
 
 
 def convert_encoder_state_dict(state: dict[str, Tensor]) -> tuple[dict[str, Tensor], str, list[str]]:
-    """Map a timm or original-DINOv2 ViT/14 state dict onto :class:`PatchEncoder` names.
+    """Map a timm or original-DINOv2 ViT/14 state dict onto :class:`PatchEncoder` names (DINOv2's own).
 
     Returns (converted state, detected format, ignored keys). Handles "module."/"backbone."/"encoder."
-    prefixes, DINOv2's block chunks (``blocks.c.i.``), ``register_tokens`` -> ``reg_token``, and position
-    embeddings without a class-token entry (timm's ``reg4`` models), which get a zero class-token row.
+    prefixes, DINOv2's block chunks (``blocks.c.i.``), timm's ``reg_token`` -> ``register_tokens``, and
+    position embeddings without a class-token entry (timm's ``reg4`` models), which get a zero class-token row.
     """
     out: dict[str, Tensor] = {}
     ignored: list[str] = []
@@ -67,11 +63,8 @@ def convert_encoder_state_dict(state: dict[str, Tensor]) -> tuple[dict[str, Tens
     for key, value in state.items():
         k = re.sub(r"^(module\.|backbone\.|encoder\.|model\.)+", "", key)
         k = re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", k)  # DINOv2 block chunks
-        if k in _DINOV2_UNUSED:
-            ignored.append(key)
-            continue
-        if k == "register_tokens":
-            k = "reg_token"
+        if k == "reg_token":
+            k = "register_tokens"
         out[k] = value
     pos = out.get("pos_embed")
     if pos is not None and pos.ndim == 3 and math.isqrt(pos.shape[1]) ** 2 == pos.shape[1]:
@@ -223,51 +216,51 @@ def _load_encoder_state(encoder: PatchEncoder, state: dict[str, Tensor], path: s
     return report
 
 
-def load_vggt_weights(
-    encoder: PatchEncoder, transformer: GeometryTransformer, path: str | Path
-) -> WeightsReport:
-    """Load a local VGGT checkpoint's aggregator (its DINOv2 patch embed and its frame / global blocks,
-    camera and register tokens) into the encoder and the geometry transformer, by name.
-
-    VGGT's aggregator matches the ``large`` size with ``encoder_registers=4`` and ``num_register_tokens=4``.
-    Keys outside the aggregator (VGGT's camera, depth, point and track heads) are listed as ignored.
-    Reported keys carry the model's prefixes (``encoder.``, ``transformer.``).
-    """
-    return _load_vggt_state(encoder, transformer, _read(path, "VGGT"), path)
+def load_vggt_weights(model: nn.Module, path: str | Path) -> WeightsReport:
+    """Load a local VGGT checkpoint into ``model`` (an AESplatModel) by name: its aggregator (DINOv2 patch
+    embed, frame / global blocks, camera and register tokens), camera head and depth head. VGGT's point and
+    track heads are listed as ignored. VGGT matches the ``large`` size."""
+    return _load_vggt_state(model, _read(path, "VGGT"), path)
 
 
-def _load_vggt_state(
-    encoder: PatchEncoder, transformer: GeometryTransformer, state: dict[str, Tensor], path: str | Path
-) -> WeightsReport:
-    enc_prefix, agg_prefix = "aggregator.patch_embed.", "aggregator."
+VGGT_PARTS = ("aggregator.", "camera_head.", "depth_head.")
+
+
+def _load_vggt_state(model: nn.Module, state: dict[str, Tensor], path: str | Path) -> WeightsReport:
+    enc_prefix = "aggregator.patch_embed."
     enc_state = {k[len(enc_prefix) :]: v for k, v in state.items() if k.startswith(enc_prefix)}
-    agg_state = {k[len(agg_prefix) :]: v for k, v in state.items() if k.startswith(agg_prefix)}
-    agg_state = {k: v for k, v in agg_state.items() if not k.startswith("patch_embed.")}
     enc_state, _, ignored = convert_encoder_state_dict(enc_state)
     report = WeightsReport(path=str(path), format="vggt", ignored=[enc_prefix + k for k in ignored])
-    report.ignored += sorted(k for k in state if not k.startswith(agg_prefix))
-    _load_matching(encoder, enc_state, "encoder.", report, pos_grid=encoder.cfg.pos_grid)
-    _load_matching(transformer, agg_state, "transformer.", report)
+    report.ignored += sorted(k for k in state if not k.startswith(VGGT_PARTS))
+    encoder = model.aggregator.patch_embed
+    _load_matching(encoder, enc_state, enc_prefix, report, pos_grid=encoder.cfg.pos_grid)
+    rest = {k: v for k, v in state.items() if k.startswith(VGGT_PARTS) and not k.startswith(enc_prefix)}
+    partial = WeightsReport(path=str(path), format="vggt")
+    _load_matching(model, rest, "", partial)
+    report.loaded += partial.loaded
+    report.unexpected += partial.unexpected
+    # the model's tensors outside what VGGT has (the Gaussian head, appearance) are new, not missing
+    vggt_has = [k for k in partial.missing if k.startswith(VGGT_PARTS) and not k.startswith(enc_prefix)]
+    report.missing += sorted(vggt_has)
     _warn(report)
     return report
 
 
-def load_pretrained_weights(
-    encoder: PatchEncoder, transformer: GeometryTransformer, path: str | Path
-) -> WeightsReport:
+def load_pretrained_weights(model: nn.Module, path: str | Path) -> WeightsReport:
     """Load a local checkpoint, whichever of the supported kinds it is: a VGGT checkpoint (keys under
-    ``aggregator.``) into the encoder and the geometry transformer, otherwise a timm or DINOv2 ViT/14 into
-    the encoder. This is what ``build_model(weights=...)`` calls."""
-    return _load_backbone_state(encoder, transformer, _read(path, "pretrained"), path)
+    ``aggregator.``), otherwise a timm or DINOv2 ViT/14 into the patch encoder."""
+    return _load_backbone_state(model, _read(path, "pretrained"), path)
 
 
-def _load_backbone_state(
-    encoder: PatchEncoder, transformer: GeometryTransformer, state: dict[str, Tensor], path: str | Path
-) -> WeightsReport:
-    """A VGGT state (keys under ``aggregator.``) into encoder and transformer, else a ViT/14 into encoder."""
+def _load_backbone_state(model: nn.Module, state: dict[str, Tensor], path: str | Path) -> WeightsReport:
+    """A VGGT state (keys under ``aggregator.``) into the model, else a ViT/14 into its patch encoder."""
     if any(k.startswith("aggregator.") for k in state):
-        return _load_vggt_state(encoder, transformer, state, path)
-    return _load_encoder_state(encoder, state, path)
+        return _load_vggt_state(model, state, path)
+    report = _load_encoder_state(model.aggregator.patch_embed, state, path)
+    prefix = "aggregator.patch_embed."
+    report.loaded = [prefix + k for k in report.loaded]
+    report.missing = [prefix + k for k in report.missing]
+    return report
 
 
 AESPLAT_PREFIX = "model."  # where the LightningModule keeps the AESplatModel in its state dict
@@ -318,14 +311,19 @@ def _load_aesplat_state(
 
 
 def load_weights(model: nn.Module, path: str | Path) -> WeightsReport:
-    """What ``build_model(weights=...)`` calls: an AESplat training checkpoint into the whole ``model``, else
-    (``load_pretrained_weights``) a VGGT or DINOv2 checkpoint into its encoder and geometry transformer."""
+    """What ``build_model(weights=...)`` calls: an AESplat training checkpoint into the whole ``model``, a
+    NAS3R checkpoint into all of it but the appearance head (``nas3r.py``), else (``load_pretrained_weights``)
+    a VGGT or DINOv2 checkpoint into its trunk (and VGGT's camera and depth heads)."""
     raw = _read_raw(path, "pretrained")  # read once: VGGT checkpoints are several GB
     state = _state_of(raw, path)
     if is_aesplat_checkpoint(state):
         hparams = raw.get("hyper_parameters") if isinstance(raw, dict) else None
         return _load_aesplat_state(model, state, path, (hparams or {}).get("net"))
-    return _load_backbone_state(model.encoder, model.transformer, state, path)
+    from .nas3r import is_nas3r_state, load_nas3r_state
+
+    if is_nas3r_state(state):
+        return load_nas3r_state(model, state, path)
+    return _load_backbone_state(model, state, path)
 
 
 def export_weights(checkpoint: str | Path, out: str | Path, note: str = "") -> Path:
