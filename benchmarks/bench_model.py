@@ -26,7 +26,7 @@ from torch.utils._pytree import tree_flatten
 from aesplat.model import build_model
 from aesplat.render import render
 
-MODULES = ("encoder", "transformer", "camera_head", "depth_head", "gaussian_head", "appearance")
+MODULES = ("aggregator", "camera_head", "depth_head", "gaussian_head", "appearance")  # encoder in aggregator
 
 
 class PeakTensorMemory(TorchDispatchMode):

@@ -72,8 +72,8 @@ from aesplat.train.loss import LpipsWeightsMissing
 STAGES = ("data wait + loop", "host to device", "encoder", "transformer", "heads", "appearance",
           "model (other)", "render", "loss", "backward", "optimizer")  # fmt: skip
 MODEL_PARTS = {
-    "encoder": ("encoder",),
-    "transformer": ("transformer",),
+    "encoder": ("encoder",),  # the patch encoder (aggregator.patch_embed), timed inside the transformer's
+    "transformer": ("aggregator",),
     "heads": ("camera_head", "depth_head", "gaussian_head"),
     "appearance": ("appearance",),
 }

@@ -40,7 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 CONFIG = "conf/demo.yaml"
 PAPER_CONFIG = "conf/re10k.yaml"
-PARTS = ("encoder", "transformer", "depth_head", "gaussian_head", "camera_head", "appearance")
+PARTS = ("aggregator.patch_embed", "aggregator", "depth_head", "gaussian_head", "camera_head", "appearance")
 
 
 # ----------------------------------------------------------------------------------------------- measured
@@ -89,7 +89,7 @@ def forward_flops(counts: list[int]) -> list[dict]:
         model = build_model(size=net["size"], appearance=net["appearance"], sh_degree=net["sh_degree"],
                             view_aggregation="pool")  # fmt: skip
         patch = model.cfg.encoder.patch_size
-        tokens = (side // patch) ** 2 + 1 + model.cfg.transformer.num_register_tokens
+        tokens = (side // patch) ** 2 + model.aggregator.patch_start
         relation, colour = model.appearance.gvsre.mlp, model.appearance.wcm.mlp  # Linear, GELU, Linear
         # Floats the pool head keeps for the backward per (Gaussian, view) pair of each MLP: its input and
         # its hidden layer before and after the GELU (the concatenations and masks beside them not counted).
@@ -101,15 +101,17 @@ def forward_flops(counts: list[int]) -> list[dict]:
                 model(torch.empty(1, k, 3, side, side), torch.empty(1, targets, 3, side, side))
             by_module = counter.get_flop_counts()
             gflops = {name: _gflops(by_module, name) for name in PARTS}
-            attention = _gflops(by_module, "transformer", "aten.bmm")
+            attention = _gflops(by_module, "aggregator", "aten.bmm") - _gflops(
+                by_module, "aggregator.patch_embed", "aten.bmm"
+            )  # the alternating blocks' attention (the aggregator's minus its patch encoder's)
             rows.append({
                 "context_views": k, "target_views": targets, "image_size": side, "tokens_per_view": tokens,
                 "global_tokens": (k + targets) * tokens, "gaussians": k * side * side,
                 "pool_pairs": k * k * side * side, "gflops": counter.get_total_flops() / 1e9,
                 "batch_size": batch, "pool_saved_gib": 4 * batch * side * side
                 * (k * k * per_relation + k * (k - 1) * per_colour) / 2**30,
-                "encoder_gflops": gflops["encoder"], "attention_gflops": attention,
-                "transformer_other_gflops": gflops["transformer"] - attention,
+                "encoder_gflops": gflops["aggregator.patch_embed"], "attention_gflops": attention,
+                "transformer_other_gflops": gflops["aggregator"] - gflops["aggregator.patch_embed"] - attention,
                 "heads_gflops": gflops["depth_head"] + gflops["gaussian_head"] + gflops["camera_head"],
                 "appearance_gflops": gflops["appearance"],
             })  # fmt: skip

@@ -75,15 +75,12 @@ def pose_regressor(variant: str):
         net = StackedPairCNN()
         return net, net
     model = build_model("tiny", camera_correlation=variant == "head-correlation")
-    patch = model.cfg.encoder.patch_size
 
     def predict(images: Tensor) -> Tensor:
-        b, v, _, h, w = images.shape
-        tokens = model.encoder(images.flatten(0, 1)).unflatten(0, (b, v))
-        layers = model.transformer(tokens, (h // patch, w // patch), num_context=v)
+        layers = model.aggregator(images, num_context=images.shape[1])
         return model.camera_head(layers[-1][:, :, 0], images)[0]
 
-    keep = nn.ModuleList([model.encoder, model.transformer, model.camera_head])  # the DPT heads are unused
+    keep = nn.ModuleList([model.aggregator, model.camera_head])  # the DPT heads are unused
     return keep, predict
 
 

@@ -241,7 +241,8 @@ def head_statistics(model, shards: Path, cameras: str) -> dict:
         root=str(shards), image_size=SIZE, num_workers=0, eval_batch_size=1, test_split="validation"
     )
     seen: list[tuple] = []
-    hook = model.gaussian_head.out.register_forward_hook(lambda m, i, o: seen.append((i[0], o)))
+    output = model.gaussian_head.scratch.output_conv2
+    hook = output.register_forward_hook(lambda m, i, o: seen.append((i[0], o)))
     try:
         with torch.no_grad():
             for batch in data.eval_dataset("test"):
@@ -249,8 +250,8 @@ def head_statistics(model, shards: Path, cameras: str) -> dict:
     finally:
         hook.remove()
     features = torch.cat([f.flatten(2) for f, _ in seen], dim=-1)  # [views, C, pixels]
-    raw = torch.cat([o[:, 4:8].flatten(2) for _, o in seen], dim=-1)  # scale x3, opacity
-    scales, opacity = raw[:, :3], raw[:, 3]
+    raw = torch.cat([o[:, 0:4].flatten(2) for _, o in seen], dim=-1)  # opacity, scale x3
+    scales, opacity = raw[:, 1:4], raw[:, 0]
     if model.cfg.scale_mode == "pixel":
         flat_scales = scales.abs() > SIGMOID_FLAT
     else:  # flat below, and held by the cap above

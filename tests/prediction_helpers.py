@@ -17,7 +17,7 @@ from PIL import Image
 from tests.helpers import IMAGE_SIZE, write_tiny_checkpoint
 
 HEAD_OUTPUT = "model.appearance.view_dependent_head.net.7.weight"
-GAUSSIAN_OUTPUT_BIAS = "model.gaussian_head.out.bias"
+GAUSSIAN_OUTPUT_BIAS = "model.gaussian_head.scratch.output_conv2.2.bias"
 RED, BLUE = (220, 30, 30), (30, 30, 220)
 
 
@@ -30,9 +30,9 @@ def write_view_dependent_checkpoint(run_dir: Path, gain: float = 100.0) -> Path:
     state = torch.load(ckpt, weights_only=False)
     weights = state["state_dict"]
     weights[HEAD_OUTPUT] = weights[HEAD_OUTPUT] * gain
-    bias = weights[GAUSSIAN_OUTPUT_BIAS].clone()  # rotation 0..3, scale 4..6, opacity 7
-    bias[4:7] = 35.0  # scales 0.001 * softplus(35) = 0.035: about a pixel at the predicted depth
-    bias[7] = 2.0  # opacity 0.88
+    bias = weights[GAUSSIAN_OUTPUT_BIAS].clone()  # opacity 0, scale 1..3, rotation 4..7, SH
+    bias[1:4] = 35.0  # scales 0.001 * softplus(35) = 0.035: about a pixel at the predicted depth
+    bias[0] = 2.0  # opacity 0.88
     weights[GAUSSIAN_OUTPUT_BIAS] = bias
     torch.save(state, ckpt)
     return ckpt

@@ -25,6 +25,7 @@ from aesplat.geometry import (
     safe_norm,
     safe_normalize,
 )
+from aesplat.model.camera_head import FOV_MAX, FOV_MIN
 
 
 def _hat(w: torch.Tensor) -> torch.Tensor:
@@ -120,20 +121,33 @@ def test_matrix_to_quat_gradcheck_float64(name):
 
 
 def test_camera_head_start_has_finite_gradients_near_the_identity():
-    """The camera head starts at 6D = (1, 0, 0, 0, 1, 0): rot6d -> matrix -> quaternion must give finite
-    gradients for every rotation near there (torch 2.11 / 2.13 gave NaN for about a quarter of them at
-    σ = 1e-3 before matrix_to_quat guarded its square roots), and for the exact identity and 180° turns."""
+    """The camera head (VGGT's) starts at the quaternion (x, y, z, w) = (0, 0, 0, 1): quat_to_matrix must give
+    finite gradients for every rotation near there, for the exact identity and 180° turns (w = 0), and for
+    the zero quaternion (all outputs zero), which is the identity with a zero gradient."""
     gen = torch.Generator().manual_seed(0)
-    base = torch.tensor([1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
-    near = [base + s * torch.randn(200, 6, generator=gen) for s in (1e-2, 1e-3, 1e-4, 1e-6)]
+    base = torch.tensor([1.0, 0.0, 0.0, 0.0])  # (w, x, y, z)
+    near = [base + s * torch.randn(200, 4, generator=gen) for s in (1e-2, 1e-3, 1e-4, 1e-6)]
     exact = torch.tensor(
-        [[1.0, 0, 0, 0, 1, 0], [1.0, 0, 0, 0, -1, 0], [-1.0, 0, 0, 0, 1, 0], [-1.0, 0, 0, 0, -1, 0]]
+        [[1.0, 0, 0, 0], [-1.0, 0, 0, 0], [0.0, 1, 0, 0], [0.0, 0, 1, 0], [0.0, 0, 0, -1], [0.0, 0, 0, 0]]
     )
-    d6 = torch.cat([*near, exact]).requires_grad_(True)
-    q = matrix_to_quat(rot6d_to_matrix(d6))
-    (q * torch.randn(q.shape, generator=gen)).sum().backward()
-    bad = (~torch.isfinite(d6.grad).all(-1)).sum()
-    assert bad == 0, f"{int(bad)} of {d6.shape[0]} rotations have non-finite gradients"
+    q = torch.cat([*near, exact]).requires_grad_(True)
+    rot = quat_to_matrix(q)
+    (rot * torch.randn(rot.shape, generator=gen)).sum().backward()
+    bad = (~torch.isfinite(q.grad).all(-1)).sum()
+    assert bad == 0, f"{int(bad)} of {q.shape[0]} rotations have non-finite gradients"
+    torch.testing.assert_close(rot[-1], torch.eye(3))  # the zero quaternion: the identity ...
+    assert torch.equal(q.grad[-1], torch.zeros(4))  # ... held constant
+    assert q.grad[-6].abs().sum() > 0  # the exact identity still learns
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_quat_to_matrix_derivative_at_the_identity(dtype):
+    """At q = (1, 0, 0, 0) (w, x, y, z): dR/dv_i = 2 [e_i]x for the vector part, and dR/dw = 0 (the
+    normalisation takes out the radial direction)."""
+    jac = jacobian(quat_to_matrix, torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=dtype))  # [3, 3, 4]
+    expected = torch.stack([torch.zeros(3, 3, dtype=dtype)] + [2 * _hat(e) for e in torch.eye(3, dtype=dtype)],
+                           dim=-1)  # fmt: skip
+    torch.testing.assert_close(jac, expected, atol=1e-7, rtol=0)
 
 
 def test_safe_norm_and_normalize_at_the_zero_vector():
@@ -183,7 +197,8 @@ def test_quaternion_and_covariance_at_zero_and_half_turns():
 
 
 def test_homogeneous_translation_at_a_vanishing_w():
-    """w = softplus(raw) + eps: raw -> -inf leaves the denominator at eps with finite gradients."""
+    """w = softplus(raw) + eps: raw -> -inf leaves the denominator at eps with finite gradients (a geometry
+    helper; the camera head predicts its translation directly, as VGGT's)."""
     t4 = torch.tensor([[1.0, -2.0, 3.0, -200.0], [0.0, 0.0, 0.0, 0.0]], requires_grad=True)
     t = homogeneous_to_translation(t4)
     torch.testing.assert_close(t[0], torch.tensor([1.0, -2.0, 3.0]) / 1e-3)
@@ -194,8 +209,9 @@ def test_homogeneous_translation_at_a_vanishing_w():
 
 
 def test_fov_to_focal_at_the_camera_heads_bounds_has_the_analytic_derivative():
-    """The camera head keeps the FOV in [10°, 160°]; d/dfov 0.5 / tan(fov / 2) = -1 / (4 sin²(fov / 2))."""
-    fov = torch.tensor([math.radians(10.0), DEFAULT_FOV, math.radians(160.0)], dtype=torch.float64)
+    """The camera head clamps the FOV to [0.09, 2.97] rad (VGGT's); d/dfov 0.5 / tan(fov / 2) =
+    -1 / (4 sin²(fov / 2))."""
+    fov = torch.tensor([FOV_MIN, DEFAULT_FOV, FOV_MAX], dtype=torch.float64)
     jac = jacobian(fov_to_focal, fov).diagonal()
     torch.testing.assert_close(jac, -0.25 / torch.sin(0.5 * fov) ** 2, rtol=1e-12, atol=0)
     fov32 = fov.float().requires_grad_(True)

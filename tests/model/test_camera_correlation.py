@@ -7,6 +7,14 @@ from aesplat.model.camera_head import CameraHead, ViewCorrelation, cost_volume
 from aesplat.model.model import build_model
 
 
+def _trained(head: CameraHead) -> CameraHead:
+    """``head`` with a non-zero pose output layer, as a trained head has: a new head's pose and FoV weights are
+    zero (it starts at the identity), so no gradient would reach the layers below it."""
+    with torch.no_grad():
+        head.pose_branch.fc2.weight.normal_(std=0.05)
+    return head
+
+
 def test_cost_volume_peaks_at_the_shift_between_the_maps():
     torch.manual_seed(0)
     ref = torch.nn.functional.normalize(torch.randn(1, 8, 12, 16), dim=1)
@@ -45,7 +53,7 @@ def test_other_image_sizes_are_resized_to_the_working_size():
 @pytest.mark.parametrize("fill", [0.0, 1.0])
 def test_constant_images_keep_the_branch_finite(fill):
     torch.manual_seed(0)
-    head = CameraHead(in_dim=16, hidden=32, correlation=True)
+    head = _trained(CameraHead(16, num_heads=2, trunk_depth=1, correlation=True))
     images = torch.full((2, 3, 3, 42, 42), fill)
     ext, intr = head(torch.randn(2, 3, 16), images)
     (ext.sum() + intr.sum()).backward()
@@ -53,10 +61,11 @@ def test_constant_images_keep_the_branch_finite(fill):
     missing = [name for name, p in head.named_parameters() if p.grad is None]
     assert not missing, f"no gradient reached {missing}"  # the branch is in the graph, even on flat images
     assert all(torch.isfinite(p.grad).all() for p in head.parameters())
+    assert head.correlation.reduce[-1].weight.grad.abs().sum() > 0  # the branch moves the poses
 
 
 def test_the_branch_needs_the_images():
-    head = CameraHead(in_dim=16, hidden=32, correlation=True)
+    head = CameraHead(16, num_heads=2, trunk_depth=1, correlation=True)
     with pytest.raises(ValueError, match="needs the images"):
         head(torch.randn(1, 2, 16))
 
@@ -68,6 +77,7 @@ def test_model_option_adds_the_branch_and_keeps_the_other_keys():
     extra = set(corr.state_dict()) - set(plain.state_dict())
     assert extra and all(k.startswith("camera_head.correlation.") for k in extra)
     assert set(plain.state_dict()) <= set(corr.state_dict())  # a checkpoint without it still names the same
+    _trained(corr.camera_head)
     ctx, tgt = torch.rand(2, 2, 3, 42, 42), torch.rand(2, 1, 3, 42, 42)
     out = corr(ctx, tgt)
     out.extrinsics[:, 1:, :3, 3].sum().backward()

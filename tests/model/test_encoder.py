@@ -15,6 +15,7 @@ from aesplat.model import (
     convert_encoder_state_dict,
     load_encoder_weights,
 )
+from aesplat.model.weights import load_pretrained_weights, load_vggt_weights
 
 DIM, DEPTH = 96, 4  # the tiny preset's encoder
 
@@ -60,10 +61,16 @@ def timm_state_dict(dim: int, depth: int, grid: int, registers: int = 0, cls_pos
 
 
 def to_dinov2(sd: dict) -> dict:
-    """The original DINOv2 release's names: ``register_tokens``, an (unused) ``mask_token``."""
+    """The original DINOv2 release's names: ``register_tokens``, a ``mask_token`` (not zero, as trained)."""
     out = {("register_tokens" if k == "reg_token" else k): v for k, v in sd.items()}
-    out["mask_token"] = torch.zeros(1, sd["cls_token"].shape[-1])
+    out["mask_token"] = torch.randn(1, sd["cls_token"].shape[-1], generator=torch.Generator().manual_seed(3))
     return out
+
+
+# timm's DINOv2 checkpoints have no mask_token (DINOv2's masked-image-modelling token); the encoder keeps one,
+# frozen and unused, so that DINOv2's and VGGT's checkpoints load whole. A timm file lacking it is complete: the
+# token is not reported missing (and it keeps its initialisation).
+TIMM_MISSING: list[str] = []
 
 
 def test_encoder_output_shape_and_normalisation():
@@ -106,8 +113,11 @@ def test_load_timm_checkpoint(tmp_path):
     torch.save(sd, path)
     model = build_model("tiny", weights=str(path))
     report = model.weights_report
-    assert report.format == "timm" and report.missing == [] and report.unexpected == []
+    assert report.format == "timm" and report.missing == TIMM_MISSING and report.unexpected == []
     assert model.pretrained_backbone
+    # the encoder is the aggregator's patch_embed, and the report names its tensors so
+    assert model.encoder is model.aggregator.patch_embed
+    assert sorted(report.loaded) == sorted("aggregator.patch_embed." + k for k in sd)
     own = model.encoder.state_dict()
     for key, value in sd.items():
         assert torch.equal(own[key], value), key
@@ -123,16 +133,33 @@ def test_load_dinov2_checkpoint_interpolates_positions_and_reports_keys(tmp_path
         model = build_model("tiny", weights=str(path), encoder_registers=4)
     report = model.weights_report
     assert report.format == "dinov2"
-    assert report.missing == ["norm.bias"] and report.unexpected == ["head.weight"]
-    assert report.ignored == ["backbone.mask_token"]
+    assert report.missing == ["aggregator.patch_embed.norm.bias"]
+    # the classifier is unexpected (under which name: test_an_encoder_checkpoint_reports_unexpected_keys_...)
+    assert [k.removeprefix("aggregator.patch_embed.") for k in report.unexpected] == ["head.weight"]
+    assert report.ignored == []
     own = model.encoder.state_dict()
-    assert torch.equal(own["reg_token"], sd["register_tokens"])
+    assert torch.equal(own["register_tokens"], sd["register_tokens"])
+    assert torch.equal(own["mask_token"], sd["mask_token"])  # DINOv2's mask token loads too
+    assert not model.encoder.mask_token.requires_grad  # ... and is never trained
     assert torch.equal(own["blocks.3.mlp.fc2.weight"], sd["blocks.3.mlp.fc2.weight"])
     assert own["pos_embed"].shape == (1, 1 + 16 * 16, DIM)
     assert torch.equal(own["pos_embed"][:, 0], sd["pos_embed"][:, 0])
     assert model.pretrained_backbone
     with torch.no_grad():
         assert torch.isfinite(model.encoder(torch.rand(1, 3, 28, 28))).all()
+
+
+def test_an_encoder_checkpoint_reports_unexpected_keys_under_the_model_name(tmp_path):
+    """Like its loaded and missing keys, and like a VGGT checkpoint's, a ViT/14 checkpoint's unexpected keys are
+    named where they would sit in the model (``aggregator.patch_embed.``)."""
+    sd = timm_state_dict(DIM, DEPTH, grid=16)
+    sd["head.weight"] = torch.zeros(10, DIM)
+    path = tmp_path / "with_head.pth"
+    torch.save(sd, path)
+    with pytest.warns(UserWarning, match="unexpected 1"):
+        report = load_pretrained_weights(build_model("tiny"), path)
+    assert report.missing == TIMM_MISSING
+    assert report.unexpected == ["aggregator.patch_embed.head.weight"]
 
 
 def test_load_timm_reg4_checkpoint_without_class_position(tmp_path):
@@ -142,7 +169,8 @@ def test_load_timm_reg4_checkpoint_without_class_position(tmp_path):
     model = build_model("tiny", weights=str(path), encoder_registers=4)
     pos = model.encoder.state_dict()["pos_embed"]
     assert torch.equal(pos[:, 1:], sd["pos_embed"]) and pos[:, 0].eq(0).all()
-    assert model.weights_report.missing == [] and model.weights_report.unexpected == []
+    assert model.weights_report.missing == TIMM_MISSING and model.weights_report.unexpected == []
+    assert torch.equal(model.encoder.state_dict()["register_tokens"], sd["reg_token"])  # timm's name, mapped
 
 
 def test_checkpoint_of_another_size_is_an_error(tmp_path):
@@ -163,8 +191,37 @@ def test_dinov2_block_chunks_and_prefixes_are_mapped():
     assert set(out) == {"blocks.5.attn.qkv.weight", "blocks.2.ls1.gamma"} and fmt == "timm" and ignored == []
 
 
-def vggt_state_dict(dim: int, depth: int, registers: int) -> dict:
-    """VGGT's aggregator names: ``aggregator.patch_embed.`` (DINOv2 reg4) plus frame / global blocks."""
+# Names of VGGT's camera and depth heads (facebookresearch/vggt, vggt/heads/camera_head.py and dpt_head.py),
+# written out here so that a renamed module of ours fails the test rather than following the rename.
+VGGT_HEAD_KEYS = [
+    "camera_head.token_norm.weight",
+    "camera_head.trunk.1.attn.qkv.weight",
+    "camera_head.trunk.1.ls2.gamma",
+    "camera_head.trunk_norm.bias",
+    "camera_head.empty_pose_tokens",
+    "camera_head.embed_pose.weight",
+    "camera_head.poseLN_modulation.1.weight",
+    "camera_head.pose_branch.fc1.weight",
+    "camera_head.pose_branch.fc2.bias",
+    "depth_head.norm.weight",
+    "depth_head.projects.3.weight",
+    "depth_head.resize_layers.0.weight",
+    "depth_head.resize_layers.3.bias",
+    "depth_head.scratch.layer4_rn.weight",
+    "depth_head.scratch.refinenet1.resConfUnit1.conv2.weight",
+    "depth_head.scratch.refinenet4.resConfUnit2.conv1.bias",
+    "depth_head.scratch.refinenet2.out_conv.weight",
+    "depth_head.scratch.output_conv1.weight",
+    "depth_head.scratch.output_conv2.0.weight",
+    "depth_head.scratch.output_conv2.2.bias",
+]
+VGGT_OTHER_HEADS = ["point_head.scratch.output_conv2.2.weight", "track_head.feature_extractor.norm.weight"]
+
+
+def vggt_state_dict(dim: int, depth: int, registers: int, heads: bool = True) -> dict:
+    """VGGT's layout: ``aggregator.patch_embed.`` (DINOv2 reg4), the frame / global blocks and the camera and
+    register tokens, with ``heads`` its camera and depth heads (the tiny network's shapes) and the point and
+    track heads this project does not have."""
     g = torch.Generator().manual_seed(2)
 
     def r(*shape):
@@ -176,24 +233,74 @@ def vggt_state_dict(dim: int, depth: int, registers: int) -> dict:
     for kind in ("frame_blocks", "global_blocks"):
         for i in range(depth):
             sd |= block_tensors(f"aggregator.{kind}.{i}.", dim, r, head_dim=dim // 3)
-    sd["camera_head.trunk.0.weight"] = r(4, 4)  # VGGT's own heads are not ours
+    if heads:
+        shapes = build_model("tiny", encoder_registers=4, num_register_tokens=registers).state_dict()
+        sd |= {k: r(*v.shape) for k, v in shapes.items() if k.startswith(("camera_head.", "depth_head."))}
+        assert set(VGGT_HEAD_KEYS) <= set(sd), sorted(set(VGGT_HEAD_KEYS) - set(sd))
+        sd |= {k: r(4, 4) for k in VGGT_OTHER_HEADS}
     return sd
 
 
-def test_load_vggt_aggregator(tmp_path):
+def test_load_vggt_aggregator_and_heads(tmp_path):
     sd = vggt_state_dict(DIM, DEPTH, registers=4)
     path = tmp_path / "vggt.pt"
     torch.save(sd, path)
     model = build_model("tiny", weights=str(path), encoder_registers=4, num_register_tokens=4)
     report = model.weights_report
     assert report.format == "vggt" and report.missing == [] and report.unexpected == []
-    assert set(report.ignored) == {"aggregator.patch_embed.mask_token", "camera_head.trunk.0.weight"}
+    assert sorted(report.ignored) == VGGT_OTHER_HEADS  # VGGT's point and track heads
+    assert sorted(report.loaded) == sorted(set(sd) - set(VGGT_OTHER_HEADS))
     assert model.pretrained_backbone
-    t = model.transformer.state_dict()
+    own = model.state_dict()
+    resized = "aggregator.patch_embed.pos_embed"  # 37 x 37 positions, resized to the tiny encoder's 16 x 16
+    assert own[resized].shape == (1, 1 + 16 * 16, DIM) and torch.equal(own[resized][:, 0], sd[resized][:, 0])
+    for key in set(report.loaded) - {
+        resized
+    }:  # every tensor by its own name: aggregator, camera and depth heads
+        assert torch.equal(own[key], sd[key]), key
+    # the Gaussian head and the appearance (VGGT has neither) are new: neither loaded nor missing
+    assert not any(k.startswith(("gaussian_head.", "appearance.")) for k in report.loaded + report.missing)
+    agg = model.aggregator.state_dict()
     assert torch.equal(
-        t["global_blocks.3.attn.k_norm.weight"], sd["aggregator.global_blocks.3.attn.k_norm.weight"]
+        agg["global_blocks.3.attn.k_norm.weight"], sd["aggregator.global_blocks.3.attn.k_norm.weight"]
     )
-    assert torch.equal(t["register_token"], sd["aggregator.register_token"])
-    assert torch.equal(model.encoder.state_dict()["reg_token"], sd["aggregator.patch_embed.register_tokens"])
+    assert torch.equal(agg["register_token"], sd["aggregator.register_token"])
+    assert torch.equal(model.encoder.mask_token, sd["aggregator.patch_embed.mask_token"])
+    assert torch.equal(model.encoder.register_tokens, sd["aggregator.patch_embed.register_tokens"])
     with pytest.raises(ValueError, match="register-token"):
         build_model("tiny", weights=str(path), encoder_registers=4, num_register_tokens=2)
+
+
+def test_a_vggt_checkpoint_without_heads_reports_them_missing(tmp_path):
+    sd = vggt_state_dict(DIM, DEPTH, registers=4, heads=False)
+    path = tmp_path / "vggt_aggregator.pt"
+    torch.save(sd, path)
+    with pytest.warns(UserWarning, match="missing"):
+        model = build_model("tiny", weights=str(path), encoder_registers=4, num_register_tokens=4)
+    report = model.weights_report
+    heads = sorted(k for k in model.state_dict() if k.startswith(("camera_head.", "depth_head.")))
+    assert report.missing == heads and report.unexpected == [] and report.ignored == []
+    assert sorted(report.loaded) == sorted(sd)
+
+
+def test_loaders_take_the_whole_model(tmp_path):
+    """load_vggt_weights and load_pretrained_weights fill an AESplatModel: a VGGT checkpoint by name, a ViT/14
+    into its patch encoder."""
+    vggt, timm = tmp_path / "vggt.pt", tmp_path / "timm.pth"
+    torch.save(vggt_state_dict(DIM, DEPTH, registers=4), vggt)
+    torch.save(timm_state_dict(DIM, DEPTH, grid=16), timm)
+    for load in (load_vggt_weights, load_pretrained_weights):
+        model = build_model("tiny", encoder_registers=4, num_register_tokens=4)
+        before = model.camera_head.embed_pose.weight.clone()
+        report = load(model, vggt)
+        assert report.format == "vggt" and report.missing == []
+        assert not torch.equal(model.camera_head.embed_pose.weight, before)
+        assert torch.equal(
+            model.camera_head.embed_pose.weight, torch.load(vggt)["camera_head.embed_pose.weight"]
+        )
+    model = build_model("tiny")
+    mask = model.encoder.mask_token.clone()
+    report = load_pretrained_weights(model, timm)
+    assert report.format == "timm" and report.missing == TIMM_MISSING
+    assert torch.equal(model.encoder.mask_token, mask) and not model.encoder.mask_token.requires_grad
+    assert torch.equal(model.encoder.patch_embed.proj.weight, torch.load(timm)["patch_embed.proj.weight"])

@@ -9,6 +9,7 @@ import torch
 from aesplat.errors import UserError
 from aesplat.geometry import make_pose, quat_to_matrix
 from aesplat.model import (
+    ConcatAppearance,
     NetConfig,
     PooledAppearance,
     build_appearance,
@@ -29,7 +30,9 @@ def _pool_model(seed: int = 0, **kwargs):
     model = build_model("tiny", appearance="full", sh_degree=2, view_aggregation="pool", **kwargs).eval()
     with torch.no_grad():  # trained heads' outputs are not ~constant:
         model.appearance.view_dependent_head.net[-1].weight.normal_(std=0.3)  # higher orders matter in renders
-        model.depth_head.out[-1].weight.normal_(std=0.3)  # no two views' Gaussians at one depth (sort ties)
+        # depths spread over the range (a new head's lie within 47 ± 0.3: float32 ties between views, whose
+        # sort order a permutation changes)
+        model.depth_head.scratch.output_conv2[-1].weight.normal_(std=10.0)
     return model
 
 
@@ -193,3 +196,14 @@ def test_a_concat_checkpoint_warm_starts_a_pool_model_except_its_appearance_head
     for name, value in pool.state_dict().items():
         if not name.startswith("appearance."):
             assert torch.equal(value, concat.state_dict()[name]), name
+
+
+def test_a_model_net_section_saved_before_view_aggregation_builds_the_papers_head():
+    """A run's ``model.net`` section from before the view aggregation was selectable (as ``aesplat fit`` stored
+    it then) builds the paper's head, for the two context views it was built for."""
+    net = {"size": "tiny", "appearance": "full", "sh_degree": 2, "near": 0.1, "far": 20.0, "weights": None,
+           "options": {}, "compile": "none"}  # fmt: skip
+    model = NetConfig(**net).build()
+    assert isinstance(model.appearance, ConcatAppearance) and model.appearance.num_context_views == 2
+    with pytest.raises(UserError, match="built for 2 context views"):
+        model.check_context_views(3)

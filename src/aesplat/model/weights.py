@@ -208,10 +208,15 @@ def load_encoder_weights(encoder: PatchEncoder, path: str | Path) -> WeightsRepo
     return _load_encoder_state(encoder, _read(path, "encoder"), path)
 
 
-def _load_encoder_state(encoder: PatchEncoder, state: dict[str, Tensor], path: str | Path) -> WeightsReport:
+def _load_encoder_state(
+    encoder: PatchEncoder, state: dict[str, Tensor], path: str | Path, prefix: str = ""
+) -> WeightsReport:
+    """A ViT/14 state into ``encoder``; reported keys carry ``prefix`` (the encoder's name in the model). The
+    frozen, unused ``mask_token`` is not reported missing when a file (timm's) lacks it."""
     state, fmt, ignored = convert_encoder_state_dict(state)
     report = WeightsReport(path=str(path), format=fmt, ignored=ignored)
-    _load_matching(encoder, state, "", report, pos_grid=encoder.cfg.pos_grid)
+    _load_matching(encoder, state, prefix, report, pos_grid=encoder.cfg.pos_grid)
+    report.missing = [k for k in report.missing if k != prefix + "mask_token"]
     _warn(report)
     return report
 
@@ -256,11 +261,7 @@ def _load_backbone_state(model: nn.Module, state: dict[str, Tensor], path: str |
     """A VGGT state (keys under ``aggregator.``) into the model, else a ViT/14 into its patch encoder."""
     if any(k.startswith("aggregator.") for k in state):
         return _load_vggt_state(model, state, path)
-    report = _load_encoder_state(model.aggregator.patch_embed, state, path)
-    prefix = "aggregator.patch_embed."
-    report.loaded = [prefix + k for k in report.loaded]
-    report.missing = [prefix + k for k in report.missing]
-    return report
+    return _load_encoder_state(model.aggregator.patch_embed, state, path, "aggregator.patch_embed.")
 
 
 AESPLAT_PREFIX = "model."  # where the LightningModule keeps the AESplatModel in its state dict
