@@ -410,6 +410,25 @@ def test_a_full_disk_leaves_no_temporary_file_and_is_one_line(tmp_path, syntheti
     assert verify_shards(out) == []
 
 
+def test_a_target_that_repeats_a_context_frame_converts_and_reads_back(tmp_path, scene):
+    """The literature's indices (pixelSplat's, NAS3R's) list some context frames as targets too: such an entry
+    converts, and the shared frame reads back the same as context and as target."""
+    s, r = scene
+    images = (r.images * 255).round().to(torch.uint8).numpy()
+    entry = chunk_entry(
+        "0a1b2c3d", images, s.extrinsics.double().numpy(), s.intrinsics.double().expand(8, 3, 3).numpy()
+    )
+    evaluation = {"0a1b2c3d": {"context": [1, 6], "target": [1, 4, 6], "overlap": 0.5}}
+    write_source(tmp_path / "src", [entry], [entry], evaluation)
+    manifest = convert_dataset(tmp_path / "src", tmp_path / "out", size=SIZE, min_gap=3, progress=False)
+    assert manifest["splits"]["test"]["samples"] == 1
+    batch = next(iter(DataModule(root=str(tmp_path / "out"), image_size=SIZE, num_workers=0).eval_dataset()))
+    assert batch.context.index.tolist() == [[1, 6]] and batch.target.index.tolist() == [[1, 4, 6]]
+    for c, t in ((0, 0), (1, 2)):
+        assert torch.equal(batch.context.images[0, c], batch.target.images[0, t])
+        assert torch.equal(batch.context.extrinsics[0, c], batch.target.extrinsics[0, t])
+
+
 def test_damaged_manifest_and_malformed_indices_are_one_line(tmp_path, synthetic_src):
     to_shards = load_script("to_shards", DATA_PREP).main
     out = tmp_path / "out"
@@ -431,7 +450,6 @@ def test_damaged_manifest_and_malformed_indices_are_one_line(tmp_path, synthetic
         "one context": ({"context": [3], "target": [2]}, "`context` must be a list of at least 2"),
         "float": ({"context": [0, 5.5], "target": [2]}, "must hold whole numbers"),
         "twice": ({"context": [0, 5], "target": [2, 2]}, "lists a frame twice"),
-        "both": ({"context": [0, 5], "target": [5]}, "frame 5 is both a context and a target"),
         "string": ("0,5", "must be null or an object"),
     }
     for name, (entry, expected) in bad_entries.items():

@@ -115,6 +115,8 @@ def decode_evaluation_sample(raw: dict[str, bytes], cfg: StreamConfig) -> Exampl
     sample has no context of that count; ``ValueError`` on a bad sample."""
     meta = json.loads(raw[META])
     context, target, extra = list(meta["context"]), list(meta["target"]), list(meta.get("extra", []))
+    # A frame both context and target (as in the literature's indices) is stored twice, alike; its later copy
+    # (the target's, with its highlight mask) serves both.
     frames = [*context, *target, *extra]
     names = dict(zip(frames, evaluation_stems(len(context), len(target), len(extra))))
     rows = {f: i for i, f in enumerate(frames)}
@@ -128,7 +130,7 @@ def decode_evaluation_sample(raw: dict[str, bytes], cfg: StreamConfig) -> Exampl
         raise TooFewTargets(f"it has {len(target)} targets, data.eval_num_target_views asks for {want}")
     targets = target[:want]
     views = [*chosen, *targets]
-    extrinsics, intrinsics = _cameras(raw, len(rows))
+    extrinsics, intrinsics = _cameras(raw, len(frames))
     picked = [rows[f] for f in views]
     images = torch.stack([_image(raw[image_member(names[f])], names[f], cfg.image_size) for f in views])
     masks = [highlight_member(names[f]) for f in targets]

@@ -162,9 +162,6 @@ def parse_evaluation_entry(key: str, entry: Any, what: str) -> EvaluationEntry |
     for problem in (context, target):
         if isinstance(problem, str):
             raise UserError(f"{what}: entry {key!r}: {problem}")
-    both = sorted(set(context) & set(target))
-    if both:
-        raise UserError(f"{what}: entry {key!r}: frame {both[0]} is both a context and a target view")
     overlap = entry.get("overlap")
     if overlap is not None and (isinstance(overlap, bool) or not isinstance(overlap, (int, float))):
         raise UserError(f"{what}: entry {key!r}: `overlap` must be a number or null, got {overlap!r}")
@@ -173,8 +170,10 @@ def parse_evaluation_entry(key: str, entry: Any, what: str) -> EvaluationEntry |
 
 def read_evaluation_index(path: str | Path) -> dict[str, EvaluationEntry | None]:
     """An evaluation index JSON ``{scene: null | {"context": [i, j, ...], "target": [...], "overlap": x}}``,
-    every entry checked: at least two context and one target frame, whole numbers >= 0, none repeated, no
-    frame both context and target. A missing or malformed file is one ``UserError`` line."""
+    every entry checked: at least two context and one target frame, whole numbers >= 0, none repeated within
+    a list. A frame may be both a context and a target view, as in the literature's indices (pixelSplat's and
+    NAS3R's RealEstate10K index has such entries), so that they are read as they are. A missing or malformed
+    file is one ``UserError`` line."""
     path = Path(path)
     what = f"evaluation index {path}"
     if not path.is_file():

@@ -3,13 +3,16 @@
 Image metrics are per image (data range 1) so that PSNR is averaged over images, not computed on a pooled
 MSE. Pose errors compare predicted and ground-truth poses *relative to context view 0*, so they are
 independent of the ground truth's world frame; the translation error is an angle because a pose-free model
-recovers translation only up to scale.
+recovers translation only up to scale. The pose AUC (``pose_auc``) follows the pose-free literature: errors
+of the context views alone, the translation angle folded to [0, 90] and the pose error the larger of the two.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
@@ -17,6 +20,7 @@ from torchmetrics.functional.image import peak_signal_noise_ratio, structural_si
 from aesplat.geometry import matrix_to_quat, relative_to_first, safe_norm
 
 OVERLAP_BUCKETS = {"small": (0.0, 0.3), "medium": (0.3, 0.55), "large": (0.55, math.inf)}
+AUC_THRESHOLDS_DEG = (5, 10, 20)
 
 
 def psnr(pred: Tensor, target: Tensor) -> Tensor:
@@ -87,6 +91,60 @@ def relative_pose_errors(pred_extrinsics: Tensor, gt_extrinsics: Tensor) -> tupl
     rel_pred = relative_to_first(pred_extrinsics.float())[:, 1:]
     rel_gt = relative_to_first(gt_extrinsics.float())[:, 1:]
     return rotation_angle_deg(rel_pred, rel_gt), translation_angle_deg(rel_pred, rel_gt)
+
+
+def folded_translation_angle_deg(rel_pred: Tensor, rel_gt: Tensor) -> Tensor:
+    """Translation-direction error with the sign of the direction ignored, min(e, 180 - e) in [0, 90], as for
+    an essential matrix: [..., 4, 4] x2 -> [...] in degrees. A zero translation has no direction: 90, the
+    worst error (``translation_angle_deg`` gives it 0)."""
+    angle = translation_angle_deg(rel_pred, rel_gt)
+    # A NaN translation is not "still": its NaN error stays NaN.
+    still = (rel_pred[..., :3, 3].norm(dim=-1) == 0) | (rel_gt[..., :3, 3].norm(dim=-1) == 0)
+    return torch.where(still, torch.full_like(angle, 90.0), torch.minimum(angle, 180.0 - angle))
+
+
+def context_pose_errors(pred_context: Tensor, gt_context: Tensor) -> dict[str, Tensor]:
+    """The pose-AUC errors of the context views, relative to context view 0, in degrees, each [B]:
+
+    - ``*_last_deg``: the last context view alone (NAS3R's choice);
+    - ``*_ctx_deg``: the mean over context views 1..V-1 (SPFSplatV2's; equal to the former for two views).
+
+    ``rot`` is the angle of R_pred^T R_gt, ``trans`` the folded direction error
+    (``folded_translation_angle_deg``), ``pose`` the larger of the two (of the means, for ``ctx``).
+    pred_context, gt_context: [B, V, 4, 4] camera-to-world, V >= 2.
+    """
+    rel_pred = relative_to_first(pred_context.float())[:, 1:]
+    rel_gt = relative_to_first(gt_context.float())[:, 1:]
+    rot = rotation_angle_deg(rel_pred, rel_gt)  # [B, V-1]
+    trans = folded_translation_angle_deg(rel_pred, rel_gt)
+    errors = {}
+    for variant, (r, t) in {"last": (rot[:, -1], trans[:, -1]), "ctx": (rot.mean(1), trans.mean(1))}.items():
+        errors[f"rot_err_{variant}_deg"], errors[f"trans_err_{variant}_deg"] = r, t
+        errors[f"pose_err_{variant}_deg"] = torch.maximum(r, t)  # NaN stays NaN
+    return errors
+
+
+def pose_auc(
+    errors_deg: Sequence[float] | np.ndarray, thresholds: Sequence[float] = AUC_THRESHOLDS_DEG
+) -> list[float]:
+    """Area under the recall-error curve up to each threshold, divided by it (SuperGlue's pose AUC).
+
+    The curve runs through (0, 0) and (e_i, i / n) for the errors sorted ascending, linear between them; at
+    a threshold it stays at the recall of the last error below it (an error equal to the threshold does not
+    count). ``errors_deg``: n >= 1 finite errors in degrees, thresholds > 0 -> one AUC in [0, 1] each.
+    """
+    errors = np.sort(np.asarray(errors_deg, dtype=np.float64))
+    if errors.size == 0 or not np.isfinite(errors).all():
+        raise ValueError(f"pose_auc needs at least one error, all finite; got {errors.size} errors")
+    recall = np.r_[0.0, np.arange(1, errors.size + 1) / errors.size]
+    errors = np.r_[0.0, errors]
+    aucs = []
+    for t in thresholds:
+        below = int(np.searchsorted(errors, t))  # the points with an error under t, (0, 0) included
+        x = np.r_[errors[:below], t]
+        y = np.r_[recall[:below], recall[below - 1]]
+        aucs.append(float(np.sum((y[1:] + y[:-1]) / 2 * np.diff(x)) / t))  # the trapezoid rule
+    return aucs
 
 
 def overlap_bucket(overlap: float | None, buckets: dict[str, tuple[float, float]] = OVERLAP_BUCKETS) -> str:
