@@ -32,6 +32,7 @@ from torch import Tensor
 
 from .errors import MissingFileError, UserError
 from .model import CameraSource, NetConfig
+from .model.nas3r import is_nas3r_state, load_nas3r_state, nas3r_net, nas3r_variant
 from .model.weights import KIND_NAMES, checkpoint_kind, read_torch_file
 from .render import RasterizerConfig
 from .types import DATA_RECORD
@@ -374,10 +375,26 @@ def trained_image_size(ckpt: dict, data: dict | None) -> int | None:
     return size if isinstance(size, int) and not isinstance(size, bool) else None
 
 
+NAS3R_IMAGE_SIZE = 224  # NAS3R's VGGT-type networks are trained on RealEstate10K at 224 x 224
+
+
+def _load_nas3r_checkpoint(ckpt: dict, path: Path, device: torch.device | str) -> LoadedCheckpoint:
+    """One of NAS3R's trained networks (its Lightning ``.ckpt``) as this project's ``large`` network with
+    NAS3R's own SH (``nas3r_net``); NAS3R-M or a damaged file is one line."""
+    variant = nas3r_variant(ckpt["state_dict"], path)
+    net = nas3r_net(variant)
+    model = NetConfig(**net).build()
+    load_nas3r_state(model, ckpt["state_dict"], path)
+    model.to(device).eval()
+    render = asdict(RasterizerConfig())
+    return LoadedCheckpoint(model, net, render, None, path, trained_size=NAS3R_IMAGE_SIZE)
+
+
 def load_checkpoint(
     path: str | Path, device: torch.device | str = "cpu", flag: str = "--ckpt"
 ) -> LoadedCheckpoint:
-    """Restore the model of an ``aesplat fit`` checkpoint in eval mode on ``device`` (no Lightning, no LPIPS).
+    """Restore the model of an ``aesplat fit`` checkpoint, or of one of NAS3R's, in eval mode on ``device``
+    (no Lightning, no LPIPS).
 
     The model is rebuilt from the checkpoint's checked ``net`` hyper-parameters without its pretrained-weights
     file (the trained weights come from the checkpoint), then the ``model.*`` entries of the state dict are
@@ -385,6 +402,8 @@ def load_checkpoint(
     """
     path = Path(path)
     ckpt = read_checkpoint(path, flag)
+    if is_nas3r_state(ckpt["state_dict"]):
+        return _load_nas3r_checkpoint(ckpt, path, device)
     hparams = checked_hparams(
         ckpt, path, {"net": NetConfig, "render": RasterizerConfig, "cameras": CameraSource}
     )

@@ -37,9 +37,10 @@ class Prediction:
 
 
 @torch.no_grad()
-def predict_scene(model: torch.nn.Module, images: Tensor) -> Prediction:
-    """Run the model on context images [V, 3, H, W] (float in [0, 1], on the model's device)."""
-    out = model(images[None], None)
+def predict_scene(model: torch.nn.Module, images: Tensor, intrinsics: Tensor | None = None) -> Prediction:
+    """Run the model on context images [V, 3, H, W] (float in [0, 1], on the model's device); ``intrinsics``
+    [V, 3, 3] normalised, for a network that reads them (NAS3R's -I)."""
+    out = model(images[None], None, intrinsics=None if intrinsics is None else intrinsics[None])
     return Prediction(
         gaussians=out.gaussians.to(dtype=torch.float32),
         extrinsics=out.extrinsics[0].float(),
@@ -62,14 +63,36 @@ class PhotoPrediction:
     shape: tuple[int, int]
 
 
+def photo_intrinsics(values: tuple[float, float, float, float], image: InputImage) -> Tensor:
+    """``--intrinsics`` (fx, fy, cx, cy of the whole photo, normalised by its width and height) -> the
+    normalised intrinsics [3, 3] of the part of the photo the model sees (its centre crop, if any)."""
+    (w, h), (left, top, right, bottom) = image.source, image.crop
+    fx, fy, cx, cy = values[0] * w, values[1] * h, values[2] * w - left, values[3] * h - top  # pixels
+    cw, ch = right - left, bottom - top
+    return torch.tensor([[fx / cw, 0.0, cx / cw], [0.0, fy / ch, cy / ch], [0.0, 0.0, 1.0]])
+
+
 def predict_photos(
-    ckpt: str | Path, photos: list[str], *, size: int | None, crop: str, device: torch.device
-) -> PhotoPrediction:
+    ckpt: str | Path, photos: list[str], *, size: int | None, crop: str, device: torch.device,
+    intrinsics: tuple[float, float, float, float] | None = None,
+) -> PhotoPrediction:  # fmt: skip
     """Load ``ckpt`` and predict from ``photos`` (the first is the reference frame; every view takes the first
     photo's shape, ``size`` its shorter side, default the trained size; ``crop`` as ``--crop``). A checkpoint
     without a camera head, a count its appearance head cannot take or a size its patch does not divide is one
-    line (UserError) before any photo is read."""
+    line (UserError) before any photo is read. ``intrinsics`` (``--intrinsics``): fx, fy, cx, cy of every
+    photo, normalised by its width and height, for a network that reads them (NAS3R's -I), which needs them."""
     loaded = load_checkpoint(ckpt, device)
+    takes = bool(getattr(loaded.model, "takes_intrinsics", False))
+    if takes and intrinsics is None:
+        raise UserError(
+            f"{ckpt} is a NAS3R-I network, which reads the cameras' intrinsics: give --intrinsics "
+            "FX,FY,CX,CY (normalised by the photo's width and height, e.g. 0.86,0.86,0.5,0.5)"
+        )
+    if intrinsics is not None and not takes:
+        raise UserError(
+            f"--intrinsics is for networks that read them (NAS3R's -I checkpoints); {ckpt} predicts "
+            "them itself: leave --intrinsics out"
+        )
     if loaded.cameras != "predicted":
         raise UserError(
             f"{ckpt} was trained with model.cameras={loaded.cameras}: it renders with "
@@ -93,8 +116,13 @@ def predict_photos(
     shape = model_image_shape(*photo_size(photos[0]), size, patch, crop)
     inputs = [load_image(p, size, background, patch=patch, shape=shape) for p in photos]
     images = torch.stack([i.image for i in inputs]).to(device)
+    k = (
+        None
+        if intrinsics is None
+        else torch.stack([photo_intrinsics(intrinsics, i) for i in inputs]).to(device)
+    )
     try:
-        pred = predict_scene(loaded.model, images)
+        pred = predict_scene(loaded.model, images, k)
     except ValueError as err:  # e.g. more images than the context views the checkpoint was built for
         raise UserError(str(err)) from None
     return PhotoPrediction(loaded, inputs, images, pred, shape)

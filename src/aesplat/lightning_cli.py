@@ -63,6 +63,7 @@ from aesplat.errors import (
     signal_name,
 )
 from aesplat.files import check_deletable, remove_partials
+from aesplat.model.nas3r import is_nas3r_state, nas3r_net, nas3r_variant
 from aesplat.threads import apply_thread_policy
 from aesplat.train import AESplatModule
 from aesplat.train.callbacks import DataRecord, RunCheckpoint, Throughput
@@ -212,7 +213,13 @@ class AESplatCLI(LightningCLI):
         """The checkpoint's checked model settings replace the command's; name the flags they override."""
         before = self.config[sub].clone()
         sections = checkpoint_sections()
-        settings = checked_hparams(ckpt, path, sections)
+        if is_nas3r_state(ckpt["state_dict"]):  # NAS3R's own: its network, as this project names it
+            if sub == "fit":
+                raise UserError(f"--ckpt_path {path} is NAS3R's: `aesplat fit` resumes its own runs only; "
+                                f"start from NAS3R's weights with --model.net.weights {path}")  # fmt: skip
+            settings = {"net": nas3r_net(nas3r_variant(ckpt["state_dict"], path)), "cameras": "predicted"}
+        else:
+            settings = checked_hparams(ckpt, path, sections)
         settings.pop("eval", None)  # where and what an evaluation writes is the command's
         try:  # each section whole (the defaults of this version where the checkpoint predates a key)
             model = {

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 from pathlib import Path
@@ -161,6 +162,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--crop", choices=CROPS, default="none",
                         help="none: the photo's own aspect ratio; square: a centre square, the shape the "
                         "models are trained on (cameras.json says what was cropped)")  # fmt: skip
+    parser.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY",
+                        help="every photo's focal lengths and principal point, normalised by its width and "
+                        "height (e.g. 0.86,0.86,0.5,0.5); for the checkpoints that read intrinsics (NAS3R's "
+                        "-I), which need them; the others predict them")  # fmt: skip
     parser.add_argument("--novel-frames", type=int, default=30, help="frames of the novel-view path")
     parser.add_argument("--ply-sh-degree", type=int, default=None,
                         help="SH bands written to the PLY (default: min(model degree, 3), what common 3DGS "
@@ -199,6 +204,24 @@ def check_options(args: argparse.Namespace) -> None:
         raise UserError(f"--min-opacity must be in [0, 1), got {args.min_opacity}")
     if args.backend != "auto" and args.backend not in BACKENDS:
         raise UserError(f"--backend {args.backend} is not a renderer: give auto, {', '.join(BACKENDS)}")
+    if args.intrinsics is not None:
+        args.intrinsics = parse_intrinsics(args.intrinsics)
+
+
+def parse_intrinsics(text: str) -> tuple[float, float, float, float]:
+    """``--intrinsics FX,FY,CX,CY`` -> four floats: positive focal lengths, a principal point inside the photo
+    (all normalised by the photo's width and height); UserError (one line) otherwise."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise UserError(f"--intrinsics {text!r} is not four numbers FX,FY,CX,CY (e.g. 0.86,0.86,0.5,0.5)")
+    fx, fy, cx, cy = values
+    if fx <= 0 or fy <= 0 or not (0 < cx < 1 and 0 < cy < 1):
+        raise UserError(f"--intrinsics {text}: focal lengths must be > 0 and the principal point inside the "
+                        "photo (0 < CX, CY < 1), all normalised by its width and height")  # fmt: skip
+    return values
 
 
 def check_name_lengths(out: Path, photos: list[str], names: list[str]) -> None:
@@ -225,7 +248,8 @@ def _predict(args: argparse.Namespace) -> int:
     check_name_lengths(out_dir, args.images, names)
     exports = parse_formats(args.export) if args.export is not None else []
     device = resolve_device(args.device)
-    photos = predict_photos(args.ckpt, args.images, size=args.size, crop=args.crop, device=device)
+    photos = predict_photos(args.ckpt, args.images, size=args.size, crop=args.crop, device=device,
+                            intrinsics=args.intrinsics)  # fmt: skip
     loaded, inputs, images, pred, shape = photos.loaded, photos.inputs, photos.images, photos.pred, photos.shape
     model_degree = loaded.sh_degree
     if args.ply_sh_degree is not None and not 0 <= args.ply_sh_degree <= model_degree:

@@ -79,16 +79,16 @@ def test_fit_warns_when_a_paper_scale_network_has_no_pretrained_weights(size):
 
 
 def test_overfitting_one_batch_raises_psnr(smoke_shards):
-    """The model, renderer and loss can fit one batch: PSNR rises clearly within 20 steps."""
+    """The model, renderer and loss can fit one batch: PSNR rises clearly within 30 steps."""
     L.seed_everything(0)
     data = make_data(smoke_shards, flip_augment=False, gap_initial=[2, 8])
     batch = next(iter(data.train_dataloader())).float_images()
     module = make_module()
     cfg = OptimConfig(lr=1e-3, appearance_lr=3e-3, warmup_steps=0, weight_decay=0.0)
-    optimizer, _ = build_optimizer(module.model.named_parameter_groups(), cfg, False, total_steps=20)
+    optimizer, _ = build_optimizer(module.model.named_parameter_groups(), cfg, False, total_steps=30)
     target = batch.target.images.flatten(0, 1)
     history = []
-    for _ in range(20):
+    for _ in range(30):
         _, rendered = module(batch)
         loss = module.loss_fn(rendered.color, batch.target.images)["total"]
         history.append(psnr(rendered.color.detach().flatten(0, 1), target).mean().item())
@@ -98,7 +98,7 @@ def test_overfitting_one_batch_raises_psnr(smoke_shards):
         optimizer.step()
     with torch.no_grad():
         final = psnr(module(batch)[1].color.flatten(0, 1), target).mean().item()
-    print(f"overfit one batch: PSNR {history[0]:.2f} -> {final:.2f} dB in 20 steps")
+    print(f"overfit one batch: PSNR {history[0]:.2f} -> {final:.2f} dB in 30 steps")
     assert final > history[0] + 3.0
 
 
@@ -128,7 +128,11 @@ def test_resume_n_plus_m_equals_uninterrupted(smoke_shards, tmp_path):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6, msg=lambda m, name=name: f"{name}: {m}")
     opt_a = straight.trainer.optimizers[0].state
     opt_b = trainer.optimizers[0].state
-    for pa, pb in zip(straight.model.parameters(), resumed.model.parameters()):
+    trained = [
+        (pa, pb) for pa, pb in zip(straight.model.parameters(), resumed.model.parameters()) if pa.requires_grad
+    ]
+    assert trained
+    for pa, pb in trained:
         torch.testing.assert_close(opt_a[pa]["exp_avg_sq"], opt_b[pb]["exp_avg_sq"], rtol=1e-5, atol=1e-9)
 
 
@@ -209,7 +213,8 @@ def test_dataset_cameras_render_the_targets_with_the_data_sets_poses(smoke_shard
     for name, p in module.model.named_parameters():
         if name.startswith("camera_head."):
             assert p.grad is None and id(p) not in trained and torch.equal(p, before[name]), name
-    assert not torch.equal(module.model.depth_head.out[2].weight, before["depth_head.out.2.weight"])
+    out = "depth_head.scratch.output_conv2.2.weight"
+    assert not torch.equal(module.model.get_parameter(out), before[out])
 
 
 def test_a_checkpoint_of_the_other_camera_source_is_refused():

@@ -453,7 +453,7 @@ class NetConfig:
     # concat: the paper's appearance head, built for options.num_context_views (2); pool: any number of views
     view_aggregation: str = "concat"
     sh_degree: int = 4
-    near: float = ModelConfig.near  # the depth head's range: depth = near·(far/near)^sigmoid(·)
+    near: float = ModelConfig.near  # the depth head's range: depth = near + (far - near)·sigmoid(·)
     far: float = ModelConfig.far
     weights: str | None = None  # local DINOv2/timm, VGGT or aesplat training checkpoint file; never downloaded
     options: NetOptions = field(default_factory=NetOptions)  # the other build_model keywords (rope, ...)
@@ -492,9 +492,8 @@ class NetConfig:
             f"The `{self.size}` network starts from a RANDOM backbone: model.net.weights is not set.",
             "The paper builds on VGGT (a pretrained DINOv2 encoder and geometry transformer). From a random",
             "backbone, pose-free training measured no pose learning in 600 steps (conf/re10k.yaml, one H100).",
-            "Give a local checkpoint, e.g. VGGT-1B (facebook/VGGT-1B) or DINOv2 (facebookresearch/dinov2):",
-            "  --model.net.weights /path/to/vggt_1B.pt "
-            "--model.net.options '{encoder_registers: 4, num_register_tokens: 4}'",
+            "Give a local checkpoint: one of NAS3R's trained networks (docs/nas3r.md), VGGT-1B (facebook/VGGT-1B)",
+            "or DINOv2 (facebookresearch/dinov2), e.g.  --model.net.weights /path/to/vggt_1B.pt",
             "docs/training.md, 'Pretrained weights', says where they come from and which formats load.",
         ]
         rule = "=" * 100

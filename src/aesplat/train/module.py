@@ -37,12 +37,13 @@ from aesplat.model import (
     dataset_cameras,
     forward_batch,
 )
+from aesplat.model.nas3r import convert_nas3r_state, is_nas3r_state
 from aesplat.render import RasterizerConfig, render
 from aesplat.types import BatchedExample, Gaussians, RenderOutput, StepTracker
 
-from .evaluation import EvalConfig, visual_grid, write_results
+from .evaluation import EvalConfig, pose_auc_scalars, visual_grid, write_results
 from .loss import LossConfig, PhotometricLoss, camera_loss, maybe_lpips
-from .metrics import highlight_psnr, overlap_bucket, psnr, relative_pose_errors, ssim
+from .metrics import context_pose_errors, highlight_psnr, overlap_bucket, psnr, relative_pose_errors, ssim
 from .optim import OptimConfig, build_optimizer, clip_and_check, current_learning_rates, skipped_when
 from .rng import restore_rng_state, rng_state
 from .skip_guard import SkipGuard
@@ -237,7 +238,8 @@ class AESplatModule(LightningModule):
     # ----------------------------------------------------------------------------------------- evaluation
     def _evaluate(self, batch: BatchedExample) -> tuple[dict[str, Tensor], ModelOutput, RenderOutput]:
         """Per-scene metrics: image metrics averaged over each scene's target views, pose errors over views
-        (all but view 0, and the target views alone: the same views whatever the count of context views)."""
+        (all but view 0, and the target views alone: the same views whatever the count of context views), and
+        the context views' errors of the pose AUC (``context_pose_errors``)."""
         out, rendered = self(batch)
         b, vt = batch.target.images.shape[:2]
         pred, target = rendered.color.flatten(0, 1), batch.target.images.flatten(0, 1)
@@ -251,6 +253,8 @@ class AESplatModule(LightningModule):
             metrics["rot_err_deg"], metrics["trans_err_deg"] = rot.mean(1), trans.mean(1)
             metrics["rot_err_target_deg"] = rot[:, -vt:].mean(1)
             metrics["trans_err_target_deg"] = trans[:, -vt:].mean(1)
+            vc = batch.context.num_views
+            metrics.update(context_pose_errors(out.extrinsics[:, :vc], batch.context.extrinsics))
         return metrics, out, rendered
 
     def _splat_metrics(
@@ -330,6 +334,8 @@ class AESplatModule(LightningModule):
         if self.trainer.is_global_zero:
             summary = write_results(rows, self.test_output_dir, self.lpips_unavailable, self.cameras)
             print(f"wrote {len(rows)} scenes to {self.test_output_dir}: {summary['metrics']}")
+            for key, value in pose_auc_scalars(summary).items():  # over all ranks' scenes: rank 0 alone
+                self.log(key, value, rank_zero_only=True)
 
     def _test_skips(self) -> str:
         """The data module's test-split skip counters that are not zero, e.g. ``too_few_targets: 4``."""
@@ -368,6 +374,11 @@ class AESplatModule(LightningModule):
         checkpoint["rng"] = rng_state()
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
+        if is_nas3r_state(checkpoint.get("state_dict", {})):  # NAS3R's .ckpt: its network under our names
+            converted, _ = convert_nas3r_state(checkpoint["state_dict"])
+            own = self.state_dict()  # the appearance head (which NAS3R lacks) and the metrics keep theirs
+            checkpoint["state_dict"] = {**own, **{"model." + k: v for k, v in converted.items()}}
+            checkpoint.pop("loops", None)  # NAS3R's loop progress is not this run's
         if (saved := checkpoint_cameras(checkpoint)) != self.cameras:
             raise ValueError(f"the checkpoint was trained with model.cameras={saved}, this run has "
                              f"{self.cameras}; pass --model.cameras {saved}")  # fmt: skip

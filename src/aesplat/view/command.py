@@ -33,6 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --ckpt: the model's square input side (default: its own)")  # fmt: skip
     parser.add_argument("--crop", choices=CROPS, default="none",
                         help="with --ckpt: as `aesplat predict --crop`")  # fmt: skip
+    parser.add_argument("--intrinsics", default=None, metavar="FX,FY,CX,CY",
+                        help="with --ckpt: as `aesplat predict --intrinsics` (NAS3R -I)")  # fmt: skip
     parser.add_argument("--host", default=defaults.host,
                         help="address to listen on; 0.0.0.0 shares the viewer with the network (the printed "
                         "URL, its key included, then opens it from another machine)")  # fmt: skip
@@ -59,6 +61,7 @@ def require_viewer_extra() -> None:
 def start_viewer(args: argparse.Namespace):
     """Load what ``args`` name and start the viewer on it (returns the running Viewer)."""
     from ..commands import resolve_device
+    from ..predict import parse_intrinsics
     from .app import Viewer, ViewerOptions
 
     require_viewer_extra()
@@ -68,8 +71,9 @@ def start_viewer(args: argparse.Namespace):
         raise UserError(f"--port {args.port} is not a port number (0..65535)")
     device = resolve_device(args.device)
     if args.ckpt:
+        intrinsics = parse_intrinsics(args.intrinsics) if args.intrinsics is not None else None
         scene = scene_from_checkpoint(
-            args.ckpt, args.inputs, size=args.size, crop=args.crop, device=str(device)
+            args.ckpt, args.inputs, size=args.size, crop=args.crop, device=str(device), intrinsics=intrinsics
         )
     elif len(args.inputs) == 1:
         scene = scene_from_path(args.inputs[0])

@@ -118,6 +118,7 @@ def scene_from_checkpoint(
     crop: str = "none",
     device: str = "cpu",
     path_frames: int = 30,
+    intrinsics: tuple[float, float, float, float] | None = None,
 ) -> ViewScene:
     """Predict a scene from ``images`` with the checkpoint ``ckpt`` as ``aesplat predict`` does (the first
     photo's shape for every view, ``size`` its shorter side, ``crop`` as ``--crop``), in memory: nothing is
@@ -129,7 +130,8 @@ def scene_from_checkpoint(
 
     if len(images) < 2:
         raise UserError("give at least two images of the same scene after --ckpt")
-    photos = predict_photos(ckpt, images, size=size, crop=crop, device=resolve_device(device))
+    photos = predict_photos(ckpt, images, size=size, crop=crop, device=resolve_device(device),
+                            intrinsics=intrinsics)  # fmt: skip
     loaded, pixels, pred, shape = photos.loaded, photos.images, photos.pred, photos.shape
     background = loaded.background
     ext, intr = pred.extrinsics.cpu(), pred.intrinsics.cpu()
