@@ -18,6 +18,7 @@ from tests.helpers import IMAGE_SIZE, write_tiny_checkpoint
 
 HEAD_OUTPUT = "model.appearance.view_dependent_head.net.7.weight"
 GAUSSIAN_OUTPUT_BIAS = "model.gaussian_head.scratch.output_conv2.2.bias"
+DEPTH_OUTPUT_BIAS = "model.depth_head.scratch.output_conv2.2.bias"
 RED, BLUE = (220, 30, 30), (30, 30, 220)
 
 
@@ -34,6 +35,14 @@ def write_view_dependent_checkpoint(run_dir: Path, gain: float = 100.0) -> Path:
     bias[1:4] = 35.0  # scales 0.001 * softplus(35) = 0.035: about a pixel at the predicted depth
     bias[0] = 2.0  # opacity 0.88
     weights[GAUSSIAN_OUTPUT_BIAS] = bias
+    # the output layers' weights small, so that their biases set every pixel's Gaussian alike: the depth at
+    # 0.1 + 19.9 * sigmoid(-2.66) = 1.4 scene units (the depth range of write_tiny_checkpoint), where 0.035 is
+    # about a pixel of a 28-pixel view
+    for name in (GAUSSIAN_OUTPUT_BIAS, DEPTH_OUTPUT_BIAS):
+        weights[name.replace(".bias", ".weight")] = weights[name.replace(".bias", ".weight")] * 0.01
+    depth = weights[DEPTH_OUTPUT_BIAS].clone()
+    depth[0] = -2.66
+    weights[DEPTH_OUTPUT_BIAS] = depth
     torch.save(state, ckpt)
     return ckpt
 

@@ -150,14 +150,14 @@ def test_cross_dataset_evaluations_read_the_other_data_set(parsed, files, root):
 
 def test_the_depth_range_is_the_models_alone(parsed):
     """One owner: model.net.near / far (the depth head's range); the data carry none."""
-    expected = {"large": (1.0, 100.0), "tiny": (0.1, 20.0)}  # RealEstate10K / ACID; the synthetic rooms
+    expected = {"large": (1.0, 100.0), "tiny": (0.1, 10.0)}  # RealEstate10K / ACID; the synthetic rooms
     for line, config in parsed.items():
         net = config["model"]["net"]
         assert (net["near"], net["far"]) == expected[net["size"]], line
         assert "near" not in config["data"] and "far" not in config["data"], line
     model = NetConfig(**config_of(parsed, "conf/demo.yaml")["model"]["net"] | {"weights": None}).build()
-    assert (model.cfg.near, model.cfg.far) == (0.1, 20.0)
-    assert model.depth_head.log_far - model.depth_head.log_near == pytest.approx(5.298317, abs=1e-6)  # ln 200
+    assert (model.cfg.near, model.cfg.far) == (0.1, 10.0)
+    assert (model.depth_head.near, model.depth_head.far) == (0.1, 10.0)
 
 
 def test_one_default_depth_range():

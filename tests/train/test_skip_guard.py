@@ -185,7 +185,7 @@ def test_fit_with_a_persistent_nan_gradient_stops_and_names_the_operation(smoke_
     assert "NaNGradientBackward" in message and "test_skip_guard.py" in message
     report = (run_dir / "nonfinite_step0.txt").read_text()
     assert "out = RenderOutput(NaNGradient.apply(out.color), out.depth, out.alpha)" in report
-    assert "parameter(s) had non-finite gradients (encoder." in report
+    assert "parameter(s) had non-finite gradients (aggregator." in report
 
 
 @pytest.mark.parametrize("impl", ["auto", "for_loop"])  # fused (the skip decided on the device) | on the host
