@@ -2,6 +2,7 @@
 
     python benchmarks/nas3r_parity.py --out docs/results/nas3r/parity.json            # full size, all cases
     python benchmarks/nas3r_parity.py --fixture tests/model/fixtures/nas3r_parity.pt  # the CI fixture
+    python benchmarks/nas3r_parity.py --predict-check outputs/nas3r --record docs/results/nas3r/parity.json
 
 NAS3R's public code (github.com/ranrhuang/NAS3R) is not part of this repository: ``--source`` names a plain
 copy of it (default ``.peer/nas3r``, git-ignored), mounted as ``benchmarks/peer_step.py`` mounts it; its
@@ -241,6 +242,73 @@ def context_part(out: dict[str, Tensor], vc: int) -> dict[str, Tensor]:
     return {**out, "extrinsics": out["extrinsics"][:, :vc], "intrinsics": out["intrinsics"][:, :vc]}
 
 
+PANORAMA = "viser/_assets/hdri/st_fagans_interior_1k.jpg"  # a photo of a room, in the viewer extra's package
+
+
+def real_photos(out: Path) -> list[Path]:
+    """Two overlapping views of a real room: square crops, 40° of yaw apart, of an equirectangular photo that
+    viser ships (no download), saved as PNG."""
+    import viser
+    from PIL import Image
+
+    pano = Image.open(Path(viser.__file__).parent.parent / PANORAMA).convert("RGB")
+    w, h = pano.size
+    side = h // 2
+    paths = []
+    for i, left in enumerate((w // 4, w // 4 + w // 9)):
+        path = out / f"photo_{i}.png"
+        pano.crop((left, h // 4, left + side, h // 4 + side)).save(path)
+        paths.append(path)
+    return paths
+
+
+def predict_check(source: Path, out: Path, seed: int) -> dict:
+    """As a new user: a NAS3R checkpoint (random weights from NAS3R's code, in its Lightning checkpoint layout)
+    given to `aesplat predict` with two real photos; the cameras it writes against NAS3R's own forward on the
+    same images as predict feeds them, and the PLY's header and size read back."""
+    import subprocess
+
+    import lightning
+
+    from aesplat.images import load_image
+
+    out.mkdir(parents=True, exist_ok=True)
+    nas3r = build_nas3r(source, False, False, seed)
+    ckpt = out / "nas3r_random.ckpt"
+    state = {"encoder." + k: v for k, v in nas3r.state_dict().items()}
+    torch.save({"state_dict": state, "pytorch-lightning_version": lightning.__version__, "epoch": 0,
+                "global_step": 0, "loops": {}, "callbacks": {}, "optimizer_states": [], "lr_schedulers": []},
+               ckpt)  # fmt: skip
+    photos = real_photos(out)
+    pred = out / "pred"
+    command = [sys.executable, "-m", "aesplat.cli", "predict", "--ckpt", str(ckpt), *map(str, photos), "--out",
+               str(pred), "--overwrite", "--no-progress", "--device", "cpu", "--novel-frames", "2"]  # fmt: skip
+    start = time.perf_counter()
+    run = subprocess.run(command, capture_output=True, text=True)
+    seconds = time.perf_counter() - start
+    if run.returncode:
+        raise SystemExit(f"aesplat predict failed ({run.returncode}): {run.stderr[-2000:]}")
+    cameras = json.loads((pred / "cameras.json").read_text())["views"]
+    ours_e = torch.tensor([v["camera_to_world"] for v in cameras])[None]
+    ours_k = torch.tensor([v["intrinsics_normalized"] for v in cameras])[None]
+    images = torch.stack([load_image(p, 224, (0.0, 0.0, 0.0), patch=14).image for p in photos])[None]
+    inputs = {"images": images, "intrinsics": torch.eye(3).expand(1, 2, 3, 3), "vc": torch.tensor(2)}
+    theirs = run_nas3r(nas3r, inputs, targets=False)
+    rows = compare({"extrinsics": ours_e, "intrinsics": ours_k},
+                   {"extrinsics": theirs["extrinsics"], "intrinsics": theirs["intrinsics"]})  # fmt: skip
+    ply = pred / "gaussians.ply"
+    header = ply.read_bytes()[:4096].split(b"end_header\n")[0].decode().splitlines()
+    vertices = int(next(line.split()[-1] for line in header if line.startswith("element vertex")))
+    properties = [line.split()[-1] for line in header if line.startswith("property")]
+    ckpt.unlink()  # 4.8 GB
+    return {
+        "photos": f"two 40°-apart crops of site-packages/{PANORAMA}", "predict_seconds": seconds,
+        "cameras": rows, "max_relative": max(r["relative"] for r in rows.values()),
+        "ply": {"format": header[1], "vertices": vertices, "properties": len(properties),
+                "first_properties": properties[:14], "bytes": ply.stat().st_size},
+    }  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--source", type=Path, default=ROOT / ".peer" / "nas3r", help="plain copy of NAS3R")
@@ -254,6 +322,12 @@ def main() -> None:
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--out", type=Path, help="full size: write the figures here as JSON")
     group.add_argument("--fixture", type=Path, help="reduced size: write the CI fixture here")
+    group.add_argument("--predict-check", type=Path, metavar="DIR",
+                       help="full size: `aesplat predict` on a NAS3R checkpoint (written into DIR, then "
+                       "removed) and two real photos; the figures go into --record")  # fmt: skip
+    parser.add_argument(
+        "--record", type=Path, default=None, help="with --predict-check: the JSON to add them to"
+    )
     args = parser.parse_args()
     if not (args.source / "src").is_dir():
         raise SystemExit(f"nas3r_parity.py: no NAS3R source at {args.source} (a plain copy of its repository)")
@@ -262,6 +336,17 @@ def main() -> None:
     torch.backends.cuda.matmul.allow_tf32 = False
     torch.backends.cudnn.allow_tf32 = False
     notes = mount(args.source.resolve())
+    if args.predict_check is not None:
+        check = {**predict_check(args.source.resolve(), args.predict_check, args.seed), **provenance()}
+        print(
+            f"aesplat predict on a NAS3R checkpoint: cameras within {check['max_relative']:.1e} of NAS3R's "
+            f"forward; PLY {check['ply']['format']}, {check['ply']['vertices']:,} Gaussians",
+            flush=True,
+        )
+        if args.record is not None:
+            record = json.loads(args.record.read_text()) if args.record.is_file() else {}
+            write_whole(args.record, (json.dumps({**record, "predict_check": check}, indent=2) + "\n").encode())
+        return
     small = args.fixture is not None
     cases = SMALL_CASES if small else {k: FULL_CASES[k] for k in (args.cases or FULL_CASES)}
     record = {"precision": "fp32", "torch": torch.__version__, "notes": notes, "cases": [], **provenance()}
