@@ -67,6 +67,8 @@ RULES: tuple[Rule, ...] = (
     ),
     Rule("model.net.near", positive, "a positive depth"),
     Rule("model.net.options.patch_size", at_least_one, "a patch side of 1 pixel or more", optional=True),
+    Rule("model.net.options.pixel_offset", fraction, "a place in the pixel in [0, 1] (0: corner, 0.5: centre)",
+         optional=True),  # fmt: skip
     Rule(
         "model.net.options.num_context_views",
         lambda v: isinstance(v, int) and v >= 2,

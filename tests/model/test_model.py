@@ -1,6 +1,5 @@
 """The assembled model: output container, masked attention, cameras at initialisation, ablations, groups."""
 
-import math
 
 import pytest
 import torch
@@ -422,3 +421,22 @@ def test_a_smaller_patch_gives_more_tokens_per_view():
     assert out.depth.shape == (1, 2, 42, 42) and out.gaussians.means.shape == (1, 2 * 42 * 42, 3)
     with pytest.raises(ValueError, match="multiples of the patch size 7"):
         m(torch.rand(1, 2, 3, 45, 42))
+
+
+def test_pixel_offset_puts_each_gaussian_on_the_ray_through_that_place_in_its_pixel():
+    """0.0 (NAS3R's): the ray through the pixel's top-left corner; 0.5: through its centre, where the renderer
+    samples the pixel. The depth, cameras and everything else are the same."""
+    from aesplat.geometry import unproject_depth
+
+    outs = {}
+    for offset in (0.0, 0.5):
+        torch.manual_seed(0)
+        m = build_model("tiny", sh_degree=1, pixel_offset=offset)
+        with torch.no_grad():
+            outs[offset] = m(_images(1, 2, 0))
+    a, b = outs[0.0], outs[0.5]
+    assert torch.equal(a.depth, b.depth) and torch.equal(a.extrinsics, b.extrinsics)
+    for offset, out in outs.items():
+        rays = unproject_depth(out.depth, out.intrinsics, out.extrinsics, offset=offset).reshape(1, -1, 3)
+        torch.testing.assert_close(out.gaussians.means, rays)
+    assert not torch.allclose(a.gaussians.means, b.gaussians.means)

@@ -70,6 +70,8 @@ def test_the_variant_is_read_from_the_keys(fixture):
     assert nas3r_variant(plain, "f").sh_degree == 4  # 83 Gaussian channels
     net = nas3r_net(nas3r_variant(with_k, "f"))
     assert net["size"] == "large" and net["appearance"] == "baseline" and net["options"]["intrinsics_tokens"]
+    # NAS3R's camera head and pixel corners: the file runs as in NAS3R's own evaluation
+    assert net["options"]["camera_mask"] is False and net["options"]["pixel_offset"] == 0.0
     extra = {"encoder.backbone.model.point_head.norm.weight": torch.ones(2), "step_tracker": torch.zeros(1)}
     converted, ignored = convert_nas3r_state({**plain, **extra})
     assert "aggregator.camera_token" in converted and "gaussian_head.input_merger.0.weight" in converted

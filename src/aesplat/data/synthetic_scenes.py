@@ -578,7 +578,7 @@ def generate_dataset(
         "validation_scenes": n_val,
         "gap_range": [lo, hi],
         "near": 0.1,
-        "far": 20.0,
+        "far": 10.0,
     }
     (out / "dataset.json").write_text(json.dumps(info, indent=1))
     return info

@@ -51,6 +51,10 @@ class ModelConfig:
     # The camera head's attention across views masked as the trunk's global attention (context cameras never
     # see the targets); False: NAS3R's head, where the target images change the context cameras.
     camera_mask: bool = True
+    # Where in its pixel each pixel's Gaussian is unprojected: 0.0 the top-left corner (u / W, v / H), NAS3R's;
+    # 0.5 the centre, where the renderer samples that pixel and where I2DC's colour belongs (with 0.0 every
+    # I2DC colour is drawn half a pixel off: docs/nas3r.md)
+    pixel_offset: float = 0.0
     appearance: str = "full"
     sh_degree: int = 4
     # How the view-dependent head takes in the other context views: concat (the paper's; its width fixes the
@@ -319,8 +323,8 @@ class AESplatModel(nn.Module):
             depth, confidence = self.depth_head(context_tokens, (h, w))
             depth, confidence = depth.unflatten(0, (b, vc)), confidence.unflatten(0, (b, vc))  # [B, Vc, H, W]
             ctx_k, ctx_e = intrinsics[:, :vc], extrinsics[:, :vc]
-            # NAS3R unprojects pixel (u, v) through (u / W, v / H), its top-left corner
-            means = unproject_depth(depth, ctx_k, ctx_e, offset=0.0).reshape(b, vc, h * w, 3)
+            # NAS3R unprojects pixel (u, v) through (u / W, v / H), its top-left corner: pixel_offset 0
+            means = unproject_depth(depth, ctx_k, ctx_e, offset=self.cfg.pixel_offset).reshape(b, vc, h * w, 3)
 
             g = self.gaussian_head(context_tokens, context_images.flatten(0, 1))
             scales = g.scales.unflatten(0, (b, vc))  # [B, Vc, P, 3]
@@ -431,6 +435,7 @@ class NetOptions:
     camera_depth: int | None = None  # transformer blocks of the camera head (VGGT: 4)
     camera_iterations: int | None = None  # refinements of the pose encoding (NAS3R: 1)
     camera_mask: bool | None = None  # false: NAS3R's camera head, whose context cameras see the target views
+    pixel_offset: float | None = None  # 0.0: Gaussians through pixel corners (NAS3R's); 0.5: through centres
     intrinsics_tokens: bool | None = None  # NAS3R -I: the network reads every view's intrinsics
     gvsre_dim: int | None = None  # GVSRE output width
     appearance_hidden: int | None = None  # view-dependent head MLP width
@@ -492,8 +497,8 @@ class NetConfig:
             f"The `{self.size}` network starts from a RANDOM backbone: model.net.weights is not set.",
             "The paper builds on VGGT (a pretrained DINOv2 encoder and geometry transformer). From a random",
             "backbone, pose-free training measured no pose learning in 600 steps (conf/re10k.yaml, one H100).",
-            "Give a local checkpoint: one of NAS3R's trained networks (docs/nas3r.md), VGGT-1B (facebook/VGGT-1B)",
-            "or DINOv2 (facebookresearch/dinov2), e.g.  --model.net.weights /path/to/vggt_1B.pt",
+            "Give a local checkpoint: one of NAS3R's trained networks (docs/nas3r.md), VGGT-1B",
+            "(facebook/VGGT-1B) or DINOv2 (facebookresearch/dinov2): --model.net.weights /path/to/vggt_1B.pt",
             "docs/training.md, 'Pretrained weights', says where they come from and which formats load.",
         ]
         rule = "=" * 100

@@ -84,8 +84,8 @@ def convert_nas3r_state(state: dict[str, Tensor]) -> tuple[dict[str, Tensor], li
 
 def nas3r_net(variant: Nas3rVariant) -> dict:
     """The ``model.net`` settings of the network a NAS3R checkpoint is: ``large``, NAS3R's own SH
-    (``baseline``), its depth range 1-100, the trained resolution's position grid, intrinsics tokens for
-    ``-I``."""
+    (``baseline``), its depth range 1-100, its camera head unmasked (its context cameras see the target views,
+    as in NAS3R's own evaluation), Gaussians through pixel corners, intrinsics tokens for ``-I``."""
     return {
         "size": "large",
         "appearance": "baseline",
@@ -93,7 +93,7 @@ def nas3r_net(variant: Nas3rVariant) -> dict:
         "sh_degree": variant.sh_degree,
         "near": 1.0,
         "far": 100.0,
-        "options": {"intrinsics_tokens": variant.intrinsics},
+        "options": {"intrinsics_tokens": variant.intrinsics, "camera_mask": False, "pixel_offset": 0.0},
     }
 
 
