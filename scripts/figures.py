@@ -150,6 +150,8 @@ SOURCES: dict[str, str | Callable[[], dict]] = {
     "makefile": "Makefile",  # its variables, and the torch / torchvision its venv pins (torch_pin)
     # python benchmarks/bench_render.py --repeats 7 --compile --sections reference --json (this file)
     "rasterizer": "docs/results/rasterizer/reference.json",
+    # python benchmarks/nas3r_parity.py --out (this file): this project's network against NAS3R's own code
+    "nas3r-parity": "docs/results/nas3r/parity.json",
     "ablation": "docs/results/ablation/table.csv",
     "gpu-step": "docs/results/gpu-training-step.md",  # the record of the H100 measurement at 4c63102
     "gpu-run": _gpu_run,  # the last GPU run (scripts/gpu_results.py), with its derived figures

@@ -52,8 +52,8 @@ class ModelConfig:
     # see the targets); False: NAS3R's head, where the target images change the context cameras.
     camera_mask: bool = True
     # Where in its pixel each pixel's Gaussian is unprojected: 0.0 the top-left corner (u / W, v / H), NAS3R's;
-    # 0.5 the centre, where the renderer samples that pixel and where I2DC's colour belongs (with 0.0 every
-    # I2DC colour is drawn half a pixel off: docs/nas3r.md)
+    # 0.5 the centre, where the renderer samples that pixel (with 0.0 each I2DC colour is drawn half a pixel
+    # off; on the demo's validation scenes 0.5 scored lower: docs/nas3r.md)
     pixel_offset: float = 0.0
     appearance: str = "full"
     sh_degree: int = 4
