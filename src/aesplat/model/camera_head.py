@@ -163,8 +163,7 @@ def cameras_from_encoding(pose: Tensor, aspect: float) -> tuple[Tensor, Tensor]:
     """
     rot = quat_to_matrix(pose[..., [6, 3, 4, 5]])  # (x, y, z, w) -> (w, x, y, z)
     world_to_cam = make_pose(rot, pose[..., :3])
-    cam_to_world = invert_pose(world_to_cam)
-    rel = invert_pose(cam_to_world[:, :1]) @ cam_to_world
+    rel = world_to_cam[:, :1] @ invert_pose(world_to_cam)  # camera i to world, then world to camera 0
     eye = torch.eye(4, dtype=rel.dtype, device=rel.device).expand_as(rel[:, :1])
     extrinsics = torch.cat([eye, rel[:, 1:]], dim=1)
     fov_h = pose[..., 7].clamp(FOV_MIN, FOV_MAX)[:, :1].expand(-1, pose.shape[1])  # view 0's, for all views
