@@ -119,6 +119,8 @@ def test_predict_runs_a_nas3r_checkpoint_as_its_forward(fixture, small_nas3r, tm
     views = json.loads((out / "cameras.json").read_text())["views"]
     loaded = load_checkpoint(ckpt)
     assert loaded.trained_size == 224 and loaded.net["appearance"] == "baseline"
+    token = fixture["states"]["nas3r"]["backbone.model.aggregator.camera_token"]
+    assert torch.equal(loaded.model.aggregator.camera_token, token)  # NAS3R's tensors, not an initialisation
     images = torch.stack([load_image(p, 28, (0.0, 0.0, 0.0), patch=14).image for p in photos])[None]
     with torch.no_grad():
         direct = loaded.model(images)

@@ -105,6 +105,20 @@ def test_nas3r_camera_head_lets_the_targets_move_the_context() -> None:
     assert relative(with_target["extrinsics"][:, :2], alone["extrinsics"]) > 1e-3
 
 
+def test_the_intrinsics_network_keeps_the_given_intrinsics_beside_given_poses(fixture: dict) -> None:
+    """-I with the data set's cameras (posed training): the camera head's prediction, which a pose loss
+    supervises, carries the intrinsics the network was given, as the rendering cameras do."""
+    entry = next(c for c in fixture["cases"] if c["case"] == "2+1-I")["fixture"]
+    model = model_for(fixture, "nas3r-I", camera_mask=True)
+    inputs = entry["inputs"]
+    vc, k = int(inputs["vc"]), inputs["intrinsics"]
+    poses = torch.eye(4).expand(*k.shape[:2], 4, 4)
+    with torch.no_grad():
+        out = model(inputs["images"][:, :vc], inputs["images"][:, vc:], extrinsics=poses, intrinsics=k)
+    assert torch.equal(out.predicted_cameras[1], k) and torch.equal(out.intrinsics, k)
+    assert out.predicted_cameras[0].shape == poses.shape
+
+
 def test_the_intrinsics_network_reads_the_intrinsics(fixture: dict) -> None:
     """-I: other intrinsics change the cameras and Gaussians (the K-token is where the camera head reads)."""
     entry = next(c for c in fixture["cases"] if c["case"] == "2+1-I")["fixture"]

@@ -247,12 +247,20 @@ class AESplatModel(nn.Module):
             groups[group].append((name, param))
         return groups
 
-    def _check_cameras(self, context: Tensor, extrinsics: Tensor | None, intrinsics: Tensor | None) -> None:
+    def _check_cameras(
+        self, context: Tensor, views: int, extrinsics: Tensor | None, intrinsics: Tensor | None
+    ) -> None:
+        """Given cameras, for the ``views`` views of a forward pass (context and target images)."""
         b, vc = context.shape[:2]
-        if extrinsics is None and intrinsics is not None and self.takes_intrinsics:
+        if self.takes_intrinsics and intrinsics is not None:
             if intrinsics.ndim != 4 or intrinsics.shape[0] != b or intrinsics.shape[2:] != (3, 3):
                 raise ValueError(f"intrinsics must be [B, V, 3, 3] with B = {b}, got {tuple(intrinsics.shape)}")
-            return
+            if intrinsics.shape[1] < views:
+                raise ValueError(
+                    f"this network takes the intrinsics of all {views} views, got {intrinsics.shape[1]}"
+                )
+            if extrinsics is None:
+                return
         if (extrinsics is None) != (intrinsics is None):
             raise ValueError("give both extrinsics and intrinsics to replace the camera head's, or neither")
         if extrinsics is None:
@@ -291,31 +299,33 @@ class AESplatModel(nn.Module):
         intrinsics: Tensor | None = None,
     ) -> ModelOutput:
         self._check_inputs(context_images, target_images)
-        self._check_cameras(context_images, extrinsics, intrinsics)
         b, vc, _, h, w = context_images.shape
         views = vc + (0 if target_images is None else target_images.shape[1])
+        self._check_cameras(context_images, views, extrinsics, intrinsics)
         if extrinsics is not None and target_images is not None and extrinsics.shape[1] != views:
             raise ValueError(
                 f"with target images, give cameras for all {views} views, got {extrinsics.shape[1]}"
             )
         images = context_images if target_images is None else torch.cat([context_images, target_images], dim=1)
-        v = images.shape[1]
-        given_k = intrinsics  # NAS3R -I: the network reads them; the head still predicts the poses
-        if self.takes_intrinsics and (given_k is None or given_k.shape[1] < v):
-            got = None if given_k is None else given_k.shape[1]
-            raise ValueError(f"this network takes the intrinsics of all {v} views, got {got}")
-        layers = self.aggregator(images, vc, given_k[:, :v] if self.takes_intrinsics else None)
+        # NAS3R -I: the network reads every view's intrinsics and keeps them; its head predicts the poses
+        known_k = intrinsics[:, :views] if self.takes_intrinsics else None
+        layers = self.aggregator(images, vc, known_k)
 
         with torch.autocast(device_type=images.device.type, enabled=False):
             layers = [x.float() for x in layers]
             context_images = context_images.float()
+
+            def head_cameras() -> tuple[Tensor, Tensor]:
+                e, k = self.camera_head(
+                    layers[-1][:, :, 0], images, w / h, vc if self.cfg.camera_mask else None
+                )
+                return e, (k if known_k is None else known_k.float())
+
             predicted = None
-            mask = vc if self.cfg.camera_mask else None
             if extrinsics is None:
-                extrinsics, head_k = self.camera_head(layers[-1][:, :, 0], images, w / h, mask)
-                intrinsics = given_k[:, :v] if self.takes_intrinsics else head_k
+                extrinsics, intrinsics = head_cameras()
             elif target_images is not None:  # given cameras render; the head's are only supervised
-                predicted = self.camera_head(layers[-1][:, :, 0], images, w / h, mask)
+                predicted = head_cameras()
             extrinsics, intrinsics = extrinsics.float(), intrinsics.float()
             start = self.aggregator.patch_start
             context_tokens = [x[:, :vc, start:].flatten(0, 1) for x in layers]  # 4 x [B·Vc, P, 2·dim]
